@@ -1,0 +1,446 @@
+"""Stage 1 — the scene: tubes, actuation and loads as frozen, validated dataclasses.
+
+The format, frames and signs are fixed by ``shared/notes/conventions.md``:
+
+* SI units everywhere (m, Pa, N, N·m, rad).
+* Base frame at the insertion orifice, z along the insertion axis, out of the orifice.
+* Tubes are listed outermost first. Tube ``j``'s material point ``sigma`` (arc length from its
+  base) sits at the orifice when ``sigma = D_j``; before it the tube lies in a straight, rigid,
+  frictionless guide.
+* Precurvature ``u*(t)`` in the tube's material frame, a polynomial in ``t`` [m], the arc length
+  measured from the start of the curved part: ``u*_y(t) = y[0] + y[1] t + ...``.
+
+Every rule raises :class:`SceneError` naming the field and the rule; nothing is fixed up.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import json
+import math
+import re
+from collections.abc import Mapping, Sequence
+from dataclasses import dataclass, field
+from importlib import resources
+from pathlib import Path
+from typing import Any
+
+import yaml
+
+__all__ = [
+    "Actuation",
+    "Load",
+    "Scene",
+    "SceneError",
+    "Tube",
+    "builtin_scenes",
+    "load_scene",
+]
+
+
+class SceneError(ValueError):
+    """A scene, actuation or load breaks a rule. The message names the field and the rule."""
+
+
+def _finite(value: Any, where: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float)):
+        raise SceneError(f"{where} must be a number, got {value!r}")
+    value = float(value)
+    if not math.isfinite(value):
+        raise SceneError(f"{where} must be finite, got {value!r}")
+    return value
+
+
+def _vector(values: Any, n: int | None, where: str, per: str = "one per tube") -> tuple[float, ...]:
+    if isinstance(values, (str, bytes)) or not isinstance(values, Sequence):
+        raise SceneError(f"{where} must be a list of numbers, got {values!r}")
+    if n is not None and len(values) != n:
+        raise SceneError(f"{where} must have {n} entries ({per}), got {len(values)}")
+    return tuple(_finite(v, f"{where}[{i}]") for i, v in enumerate(values))
+
+
+def _check_keys(data: Mapping[str, Any], allowed: Sequence[str], where: str) -> None:
+    if not isinstance(data, Mapping):
+        raise SceneError(f"{where or 'scene'} must be a mapping, got {type(data).__name__}")
+    unknown = sorted(set(data) - set(allowed))
+    if unknown:
+        prefix = f"{where}." if where else ""
+        raise SceneError(f"unknown key {prefix}{unknown[0]!s}; allowed keys: {', '.join(allowed)}")
+
+
+@dataclass(frozen=True)
+class Tube:
+    """One nitinol-like tube (a Kirchhoff rod), outermost tubes first in a :class:`Scene`.
+
+    Attributes:
+        E, G: Young's and shear moduli [Pa], > 0.
+        inner_diameter, outer_diameter: [m], ``0 <= inner < outer`` (0 = solid rod).
+        straight_length: proximal straight part [m], >= 0.
+        curved_length: distal precurved part [m], >= 0 (total length > 0).
+        precurvature: ``(x, y, z)`` polynomial coefficients [1/m, 1/m², ...] in the arc length
+            ``t`` measured from the start of the curved part, in the tube's material frame.
+        name: label for plots and messages.
+    """
+
+    E: float
+    G: float
+    inner_diameter: float
+    outer_diameter: float
+    straight_length: float
+    curved_length: float
+    precurvature: tuple[tuple[float, ...], tuple[float, ...], tuple[float, ...]] = ((), (), ())
+    name: str = ""
+
+    @property
+    def length(self) -> float:
+        """Total length ``L = straight_length + curved_length`` [m]."""
+        return self.straight_length + self.curved_length
+
+    @property
+    def second_moment(self) -> float:
+        """Area second moment ``I = pi (OD^4 - ID^4) / 64`` [m^4]."""
+        return math.pi * (self.outer_diameter**4 - self.inner_diameter**4) / 64.0
+
+    @property
+    def bending_stiffness(self) -> float:
+        """``EI`` [N·m²]."""
+        return self.E * self.second_moment
+
+    @property
+    def torsional_stiffness(self) -> float:
+        """``GJ`` [N·m²] with the polar moment ``J = 2 I``."""
+        return self.G * 2.0 * self.second_moment
+
+    def precurvature_at(self, t: float) -> tuple[float, float, float]:
+        """``u*(t)`` [1/m] at arc length ``t`` [m] from the start of the curved part."""
+        return tuple(sum(c * t**k for k, c in enumerate(axis)) for axis in self.precurvature)
+
+    @property
+    def is_precurved(self) -> bool:
+        return self.curved_length > 0 and any(c != 0.0 for axis in self.precurvature
+                                              for c in axis)
+
+
+@dataclass(frozen=True)
+class Actuation:
+    """Actuator coordinates: insertions ``D_j`` [m] (base-to-orifice distance, larger = more
+    retracted) and base rotations ``alpha_j`` [rad], one entry per tube."""
+
+    insertion: tuple[float, ...]
+    rotation: tuple[float, ...]
+
+
+@dataclass(frozen=True)
+class Load:
+    """External tip load, base frame, applied at the robot's distal tip."""
+
+    tip_force: tuple[float, float, float] = (0.0, 0.0, 0.0)
+    tip_moment: tuple[float, float, float] = (0.0, 0.0, 0.0)
+
+    @property
+    def is_zero(self) -> bool:
+        return not any(self.tip_force) and not any(self.tip_moment)
+
+
+_TUBE_KEYS = ("name", "E", "G", "inner_diameter", "outer_diameter", "straight_length",
+              "curved_length", "precurvature")
+_SCENE_KEYS = ("tubes", "actuation", "load")
+_ACT_KEYS = ("insertion", "rotation")
+_LOAD_KEYS = ("tip_force", "tip_moment")
+
+
+@dataclass(frozen=True)
+class Scene:
+    """A concentric tube robot: tubes (outermost first), actuation and tip load.
+
+    Construct it from a mapping with :meth:`from_dict`, from a file or built-in name with
+    :func:`load_scene`, or directly; ``__post_init__`` validates every rule of conventions.md.
+    """
+
+    tubes: tuple[Tube, ...]
+    actuation: Actuation
+    load: Load = field(default_factory=Load)
+
+    def __post_init__(self) -> None:
+        _validate(self)
+
+    # -- convenience -------------------------------------------------------------------------
+    @property
+    def n_tubes(self) -> int:
+        return len(self.tubes)
+
+    def with_actuation(self, insertion: Sequence[float] | None = None,
+                       rotation: Sequence[float] | None = None) -> Scene:
+        """A copy with new insertions and/or rotations (validated)."""
+        act = Actuation(
+            tuple(float(v) for v in insertion) if insertion is not None
+            else self.actuation.insertion,
+            tuple(float(v) for v in rotation) if rotation is not None
+            else self.actuation.rotation,
+        )
+        return dataclasses.replace(self, actuation=act)
+
+    def with_load(self, tip_force: Sequence[float] | None = None,
+                  tip_moment: Sequence[float] | None = None) -> Scene:
+        """A copy with a new tip force and/or moment (validated)."""
+        load = Load(
+            tuple(float(v) for v in tip_force) if tip_force is not None else self.load.tip_force,
+            tuple(float(v) for v in tip_moment) if tip_moment is not None
+            else self.load.tip_moment,
+        )
+        return dataclasses.replace(self, load=load)
+
+    def exposed_lengths(self) -> tuple[float, ...]:
+        """Length of each tube beyond the orifice, ``max(0, L_j - D_j)`` [m]."""
+        return tuple(max(0.0, t.length - d) for t, d in zip(self.tubes, self.actuation.insertion))
+
+    # -- (de)serialisation -------------------------------------------------------------------
+    @classmethod
+    def from_dict(cls, data: Mapping[str, Any]) -> Scene:
+        """Build and validate a scene from the mapping of conventions.md."""
+        _check_keys(data, _SCENE_KEYS, "")
+        if "tubes" not in data:
+            raise SceneError("tubes is required: a list of at least one tube, outermost first")
+        tubes_raw = data["tubes"]
+        if isinstance(tubes_raw, (str, bytes)) or not isinstance(tubes_raw, Sequence) \
+                or len(tubes_raw) == 0:
+            raise SceneError("tubes must be a non-empty list of tubes, outermost first")
+        tubes = tuple(_tube_from_dict(t, i) for i, t in enumerate(tubes_raw))
+        n = len(tubes)
+        if "actuation" not in data:
+            raise SceneError("actuation is required: insertion and rotation, one entry per tube")
+        act_raw = data["actuation"]
+        _check_keys(act_raw, _ACT_KEYS, "actuation")
+        for key in _ACT_KEYS:
+            if key not in act_raw:
+                raise SceneError(f"actuation.{key} is required (one entry per tube)")
+        actuation = Actuation(
+            _vector(act_raw["insertion"], n, "actuation.insertion"),
+            _vector(act_raw["rotation"], n, "actuation.rotation"),
+        )
+        load_raw = data.get("load") or {}
+        _check_keys(load_raw, _LOAD_KEYS, "load")
+        load = Load(
+            _vector(load_raw.get("tip_force", (0.0, 0.0, 0.0)), 3, "load.tip_force", "x, y, z"),
+            _vector(load_raw.get("tip_moment", (0.0, 0.0, 0.0)), 3, "load.tip_moment", "x, y, z"),
+        )
+        return cls(tubes, actuation, load)
+
+    def to_dict(self) -> dict[str, Any]:
+        """The mapping of conventions.md (round-trips through :meth:`from_dict`)."""
+        tubes = []
+        for t in self.tubes:
+            tubes.append({
+                "name": t.name, "E": t.E, "G": t.G, "inner_diameter": t.inner_diameter,
+                "outer_diameter": t.outer_diameter, "straight_length": t.straight_length,
+                "curved_length": t.curved_length,
+                "precurvature": {ax: list(c) for ax, c in zip("xyz", t.precurvature)},
+            })
+        return {
+            "tubes": tubes,
+            "actuation": {"insertion": list(self.actuation.insertion),
+                          "rotation": list(self.actuation.rotation)},
+            "load": {"tip_force": list(self.load.tip_force),
+                     "tip_moment": list(self.load.tip_moment)},
+        }
+
+
+def _tube_from_dict(raw: Any, i: int) -> Tube:
+    where = f"tubes[{i}]"
+    _check_keys(raw, _TUBE_KEYS, where)
+    for key in ("E", "G", "inner_diameter", "outer_diameter", "straight_length", "curved_length"):
+        if key not in raw:
+            raise SceneError(f"{where}.{key} is required")
+    pc_raw = raw.get("precurvature") or {}
+    _check_keys(pc_raw, ("x", "y", "z"), f"{where}.precurvature")
+    precurvature = tuple(_vector(pc_raw.get(ax, ()), None, f"{where}.precurvature.{ax}")
+                         for ax in "xyz")
+    name = raw.get("name", f"tube{i + 1}")
+    if not isinstance(name, str):
+        raise SceneError(f"{where}.name must be a string, got {name!r}")
+    return Tube(
+        E=_finite(raw["E"], f"{where}.E"),
+        G=_finite(raw["G"], f"{where}.G"),
+        inner_diameter=_finite(raw["inner_diameter"], f"{where}.inner_diameter"),
+        outer_diameter=_finite(raw["outer_diameter"], f"{where}.outer_diameter"),
+        straight_length=_finite(raw["straight_length"], f"{where}.straight_length"),
+        curved_length=_finite(raw["curved_length"], f"{where}.curved_length"),
+        precurvature=precurvature,  # type: ignore[arg-type]
+        name=name,
+    )
+
+
+def _validate(scene: Scene) -> None:
+    if not isinstance(scene.tubes, tuple) or len(scene.tubes) == 0:
+        raise SceneError("tubes must be a non-empty tuple of Tube, outermost first")
+    n = len(scene.tubes)
+    for i, t in enumerate(scene.tubes):
+        w = f"tubes[{i}]"
+        if not isinstance(t, Tube):
+            raise SceneError(f"{w} must be a Tube, got {type(t).__name__}")
+        for key in ("E", "G", "inner_diameter", "outer_diameter", "straight_length",
+                    "curved_length"):
+            _finite(getattr(t, key), f"{w}.{key}")
+        if t.E <= 0:
+            raise SceneError(f"{w}.E ({t.E:g} Pa) must be > 0")
+        if t.G <= 0:
+            raise SceneError(f"{w}.G ({t.G:g} Pa) must be > 0")
+        if t.inner_diameter < 0:
+            raise SceneError(f"{w}.inner_diameter ({t.inner_diameter:g} m) must be >= 0")
+        if t.outer_diameter <= t.inner_diameter:
+            raise SceneError(f"{w}.outer_diameter ({t.outer_diameter:g} m) must exceed "
+                             f"{w}.inner_diameter ({t.inner_diameter:g} m)")
+        if t.straight_length < 0:
+            raise SceneError(f"{w}.straight_length ({t.straight_length:g} m) must be >= 0")
+        if t.curved_length < 0:
+            raise SceneError(f"{w}.curved_length ({t.curved_length:g} m) must be >= 0")
+        if t.length <= 0:
+            raise SceneError(f"{w}: straight_length + curved_length must be > 0")
+        if len(t.precurvature) != 3:
+            raise SceneError(f"{w}.precurvature must have the axes x, y, z")
+        for ax, coeffs in zip("xyz", t.precurvature):
+            for k, c in enumerate(coeffs):
+                _finite(c, f"{w}.precurvature.{ax}[{k}]")
+        if i > 0:
+            outer = scene.tubes[i - 1]
+            if t.outer_diameter > outer.inner_diameter:
+                raise SceneError(
+                    f"{w}.outer_diameter ({t.outer_diameter:g} m) must not exceed "
+                    f"tubes[{i - 1}].inner_diameter ({outer.inner_diameter:g} m)")
+    act = scene.actuation
+    if not isinstance(act, Actuation):
+        raise SceneError("actuation must be an Actuation")
+    for key in ("insertion", "rotation"):
+        vals = getattr(act, key)
+        if len(vals) != n:
+            raise SceneError(f"actuation.{key} must have {n} entries (one per tube), "
+                             f"got {len(vals)}")
+        for j, v in enumerate(vals):
+            _finite(v, f"actuation.{key}[{j}]")
+    for j, d in enumerate(act.insertion):
+        if d < 0:
+            raise SceneError(f"actuation.insertion[{j}] ({d:g} m) must be >= 0 "
+                             "(D_j is the distance from the tube's base to the orifice)")
+        if j > 0 and d < act.insertion[j - 1]:
+            raise SceneError(
+                f"actuation.insertion[{j}] ({d:g} m) must be >= actuation.insertion[{j - 1}] "
+                f"({act.insertion[j - 1]:g} m): an inner tube's base lies behind the outer one's")
+    load = scene.load
+    if not isinstance(load, Load):
+        raise SceneError("load must be a Load")
+    for key in ("tip_force", "tip_moment"):
+        vals = getattr(load, key)
+        if len(vals) != 3:
+            raise SceneError(f"load.{key} must have 3 entries (x, y, z), got {len(vals)}")
+        for k, v in enumerate(vals):
+            _finite(v, f"load.{key}[{k}]")
+
+
+# ---------------------------------------------------------------------------------------------
+# Loading
+
+def builtin_scenes() -> list[str]:
+    """Names of the scenes shipped with torchpvs (``torchpvs/scenes/*.yaml``)."""
+    root = resources.files("torchpvs") / "scenes"
+    return sorted(p.name[:-5] for p in root.iterdir() if p.name.endswith(".yaml"))
+
+
+class _Loader(yaml.SafeLoader):
+    """SafeLoader that reads ``58.0e9`` and ``1e-3`` as floats (YAML 1.2), not strings."""
+
+
+_Loader.add_implicit_resolver(
+    "tag:yaml.org,2002:float",
+    re.compile(r"""^(?:[-+]?(?:[0-9][0-9_]*)\.[0-9_]*(?:[eE][-+]?[0-9]+)?
+    |[-+]?(?:[0-9][0-9_]*)(?:[eE][-+]?[0-9]+)
+    |\.[0-9_]+(?:[eE][-+]?[0-9]+)?
+    |[-+]?\.(?:inf|Inf|INF)
+    |\.(?:nan|NaN|NAN))$""", re.X),
+    list("-+0123456789."),
+)
+
+
+def _yaml_load(text: str) -> Any:
+    return yaml.load(text, Loader=_Loader)  # noqa: S506 - a SafeLoader subclass
+
+
+def _parse_text(text: str, source: str) -> Any:
+    try:
+        if source.endswith(".json"):
+            return json.loads(text)
+        return _yaml_load(text)
+    except (json.JSONDecodeError, yaml.YAMLError) as exc:
+        raise SceneError(f"{source}: not valid YAML/JSON: {exc}") from None
+
+
+def apply_overrides(data: dict[str, Any], overrides: Sequence[str]) -> dict[str, Any]:
+    """Apply ``KEY=VALUE`` overrides (``actuation.rotation[1]=3.14``, ``tubes[0].E=6e10``,
+    ``load.tip_force=[0,0.1,0]``) to a scene mapping. Values are parsed as YAML."""
+    import copy
+
+    data = copy.deepcopy(data)
+    for item in overrides:
+        if "=" not in item:
+            raise SceneError(f"--set {item!r}: expected KEY=VALUE")
+        key, raw = item.split("=", 1)
+        value = _yaml_load(raw)
+        parts: list[str | int] = []
+        for token in key.strip().split("."):
+            m = re.fullmatch(r"([A-Za-z_][A-Za-z_0-9]*)((\[\d+\])*)", token)
+            if not m:
+                raise SceneError(f"--set {item!r}: cannot parse key {key!r}")
+            parts.append(m.group(1))
+            parts.extend(int(i) for i in re.findall(r"\[(\d+)\]", m.group(2)))
+        node: Any = data
+        for p in parts[:-1]:
+            try:
+                if isinstance(p, str) and isinstance(node, dict) and p not in node:
+                    node[p] = {}
+                node = node[p]
+            except (KeyError, IndexError, TypeError):
+                raise SceneError(f"--set {item!r}: no such field {key!r}") from None
+        last = parts[-1]
+        try:
+            if isinstance(node, list):
+                node[last] = value  # type: ignore[index]
+            elif isinstance(node, dict):
+                node[last] = value
+            else:
+                raise TypeError
+        except (IndexError, TypeError):
+            raise SceneError(f"--set {item!r}: no such field {key!r}") from None
+    return data
+
+
+def load_scene(source: str | Path | Mapping[str, Any] | Scene,
+               overrides: Sequence[str] = ()) -> Scene:
+    """Load a scene from a YAML/JSON path, a built-in name, a mapping, or pass a Scene through.
+
+    Args:
+        source: file path (``.yaml``, ``.yml``, ``.json``), a built-in name (see
+            :func:`builtin_scenes`), a mapping in the format of conventions.md, or a Scene.
+        overrides: ``KEY=VALUE`` strings applied before validation (see :func:`apply_overrides`).
+    """
+    if isinstance(source, Scene):
+        if not overrides:
+            return source
+        data: Any = source.to_dict()
+    elif isinstance(source, Mapping):
+        data = dict(source)
+    else:
+        text_source = str(source)
+        path = Path(text_source)
+        if path.suffix in (".yaml", ".yml", ".json") or path.exists():
+            if not path.exists():
+                raise SceneError(f"scene file {text_source!r} does not exist")
+            data = _parse_text(path.read_text(), path.name)
+        else:
+            names = builtin_scenes()
+            if text_source not in names:
+                raise SceneError(f"unknown scene {text_source!r}: not a file and not a built-in "
+                                 f"scene (built-in: {', '.join(names)})")
+            res = resources.files("torchpvs") / "scenes" / f"{text_source}.yaml"
+            data = _parse_text(res.read_text(), f"{text_source}.yaml")
+    if overrides:
+        data = apply_overrides(data, overrides)
+    return Scene.from_dict(data)
