@@ -1,0 +1,228 @@
+"""PVS solver against independent references: closed forms, physics identities, finite
+differences, and (in test_pvs_vs_reference.py) the separately implemented standard model."""
+
+from __future__ import annotations
+
+import math
+
+import pytest
+import torch
+
+import torchpvs as tp
+from torchpvs.scene import Actuation, Scene, Tube
+
+E, G = 58.0e9, 21.5e9
+
+
+def two_tubes(L=0.1, k1=9.9, k2=13.8, alpha2=0.0, D=(0.0, 0.0), straight=(0.0, 0.0),
+              lengths=None) -> Scene:
+    L1, L2 = lengths or (L, L)
+    t1 = Tube(E, G, 2.01e-3, 2.39e-3, straight[0], L1 - straight[0], ((), (k1,), ()), "outer")
+    t2 = Tube(E, G, 0.0, 1.6e-3, straight[1], L2 - straight[1], ((), (k2,), ()), "inner")
+    return Scene((t1, t2), Actuation(tuple(D), (0.0, alpha2)))
+
+
+def arc_tip(kappa: float, L: float) -> torch.Tensor:
+    """Planar circular arc bending toward +x (u*_y > 0, conventions.md)."""
+    return torch.tensor([(1 - math.cos(kappa * L)) / kappa, 0.0, math.sin(kappa * L) / kappa],
+                        dtype=torch.float64)
+
+
+@pytest.mark.parametrize("alpha2", [0.0, math.pi])
+def test_torsionless_closed_form_eq31(alpha2):
+    """Paper eq. (31): fully overlapping tubes with aligned (or opposed) planar precurvatures
+    carry no torsion, and the shared curvature is k = (EI1 k1* + EI2 k2*) / (EI1 + EI2)."""
+    L = 0.05  # short enough that the opposed configuration is stable
+    sc = two_tubes(L=L, alpha2=alpha2)
+    EI1, EI2 = (t.bending_stiffness for t in sc.tubes)
+    k2 = 13.8 * math.cos(alpha2)
+    kappa = (EI1 * 9.9 + EI2 * k2) / (EI1 + EI2)
+    eq = tp.solve(sc, options=tp.SolverOptions(order=2))
+    assert bool(eq.converged[0]) and bool(eq.stable[0])
+    ref = arc_tip(kappa, L)
+    err = (eq.tip_position[0] - ref).norm() / ref.norm()
+    assert err < 1e-10, err
+
+
+def test_configurational_force_single_tube():
+    """A precurved tube sliding out of a straight frictionless guide feels 1/2 EI kappa^2
+    (Bigoni et al. 2015; physics.md): retracting stores 1/2 EI kappa^2 per metre in the guide."""
+    kappa = 20.0
+    t = Tube(E, G, 0.0, 1.6e-3, 0.0, 0.2, ((), (kappa,), ()), "rod")
+    sc = Scene((t,), Actuation((0.05,), (0.3,)))
+    eq = tp.solve(sc)
+    expected = 0.5 * t.bending_stiffness * kappa**2
+    assert abs(float(eq.actuation_forces[0, 0]) - expected) / expected < 1e-6
+    assert abs(float(eq.actuation_torques[0, 0])) < 1e-12
+
+
+def test_rotating_all_tubes_rotates_tip_about_z():
+    sc = tp.load_scene("renda2021_fig3")
+    phi = 0.7
+    base = torch.tensor(sc.actuation.rotation, dtype=torch.float64)
+    eq0 = tp.solve(sc)
+    eq1 = tp.solve(sc, rotation=base + phi)
+    Rz = torch.tensor([[math.cos(phi), -math.sin(phi), 0], [math.sin(phi), math.cos(phi), 0],
+                       [0, 0, 1]], dtype=torch.float64)
+    assert torch.allclose(eq1.tip_position[0], Rz @ eq0.tip_position[0], atol=1e-10)
+    assert torch.allclose(eq1.tip_rotation[0], Rz @ eq0.tip_rotation[0], atol=1e-9)
+
+
+def test_sum_of_torques_vanishes():
+    """Rotating all tubes together costs no energy: sum_j tau_alpha_j = 0 (physics.md)."""
+    sc = tp.load_scene("renda2021_fig3")
+    rot = torch.tensor([[0.0, 0.5], [0.3, 2.0], [1.0, -1.0]], dtype=torch.float64)
+    eq = tp.solve(sc, rotation=rot)
+    tau = eq.actuation_torques
+    assert (tau.sum(-1).abs() <= 1e-9 * tau.abs().amax(-1)).all()
+
+
+def test_forces_match_finite_differences_of_equilibrium_energy():
+    """tau = dU*/d(D, alpha) (conventions.md): central differences of the equilibrium energy."""
+    sc = two_tubes(lengths=(0.15, 0.22), straight=(0.05, 0.1), D=(0.03, 0.06), alpha2=1.0)
+    opts = tp.SolverOptions(order=5)
+    eq = tp.solve(sc, options=opts)
+    D0 = torch.tensor(sc.actuation.insertion, dtype=torch.float64)
+    A0 = torch.tensor(sc.actuation.rotation, dtype=torch.float64)
+    h = 1e-6
+    for j in range(2):
+        dD = torch.zeros(2, dtype=torch.float64)
+        dD[j] = h
+        Up = tp.solve(sc, insertion=D0 + dD, options=opts, initial=eq).energy
+        Um = tp.solve(sc, insertion=D0 - dD, options=opts, initial=eq).energy
+        fd = float((Up - Um) / (2 * h))
+        assert abs(fd - float(eq.actuation_forces[0, j])) <= 1e-6 * max(1.0, abs(fd)), (j, fd)
+        Up = tp.solve(sc, rotation=A0 + dD, options=opts, initial=eq).energy
+        Um = tp.solve(sc, rotation=A0 - dD, options=opts, initial=eq).energy
+        fd = float((Up - Um) / (2 * h))
+        assert abs(fd - float(eq.actuation_torques[0, j])) <= 1e-6 * max(1e-3, abs(fd)), (j, fd)
+
+
+@pytest.mark.parametrize("force", [1e-4, 1e-3])
+def test_small_tip_force_matches_euler_bernoulli(force):
+    """Cantilever deflection F L^3 / (3 EI) for small loads (elastica -> Euler–Bernoulli)."""
+    t = Tube(E, G, 0.0, 1.6e-3, 0.1, 0.0, ((), (), ()), "rod")
+    sc = Scene((t,), Actuation((0.0,), (0.0,)))
+    eq = tp.solve(sc, tip_force=[0.0, force, 0.0], options=tp.SolverOptions(order=4))
+    expected = force * 0.1**3 / (3 * t.bending_stiffness)
+    assert abs(float(eq.tip_position[0, 1]) - expected) / expected < 1e-3
+    assert abs(float(eq.tip_position[0, 0])) < 1e-12
+
+
+def test_pure_tip_moment_bends_into_circle():
+    """A straight rod under a tip moment M has curvature M / EI everywhere (exact elastica)."""
+    t = Tube(E, G, 0.0, 1.6e-3, 0.1, 0.0, ((), (), ()), "rod")
+    sc = Scene((t,), Actuation((0.0,), (0.0,)))
+    M = 5e-3
+    eq = tp.solve(sc, tip_moment=[0.0, M, 0.0], options=tp.SolverOptions(order=3))
+    ref = arc_tip(M / t.bending_stiffness, 0.1)
+    assert torch.allclose(eq.tip_position[0], ref, atol=1e-9)
+
+
+def test_batch_equals_loop():
+    sc = tp.load_scene("renda2021_fig3")
+    rot = torch.tensor([[0.0, 0.3], [0.1, 1.2], [0.0, 2.5]], dtype=torch.float64)
+    ins = torch.tensor([[0.0935, 0.2085], [0.09, 0.17], [0.08, 0.19]], dtype=torch.float64)
+    opts = tp.SolverOptions(order=3)
+    batch = tp.solve(sc, insertion=ins, rotation=rot, options=opts)
+    for b in range(3):
+        single = tp.solve(sc, insertion=ins[b], rotation=rot[b], options=opts)
+        assert torch.allclose(batch.tip_position[b], single.tip_position[0], atol=1e-12)
+        assert torch.allclose(batch.actuation_forces[b], single.actuation_forces[0], atol=1e-9)
+
+
+def test_float32_matches_float64():
+    sc = tp.load_scene("renda2021_fig3")
+    rot = torch.tensor([[0.0, 0.5], [0.0, 1.5], [0.0, 2.5]], dtype=torch.float64)
+    e64 = tp.solve(sc, rotation=rot, options=tp.SolverOptions(order=3))
+    e32 = tp.solve(sc, rotation=rot.float(), options=tp.SolverOptions(order=3))
+    assert e32.tip_position.dtype == torch.float32
+    assert bool(e32.converged.all())
+    assert (e32.tip_position.double() - e64.tip_position).norm(dim=-1).max() < 1e-4
+
+
+def test_section3b_three_equilibria():
+    """Section III-B: two stable mirror equilibria and an unstable symmetric one (paper Fig. 2).
+    The symmetric one is reached with method='root' from the torsionless guess."""
+    sc = tp.load_scene("renda2021_section3b")
+    opts = tp.SolverOptions(order=5)
+    stable = tp.solve(sc, options=opts)
+    th = math.degrees(float(stable.relative_rotation_at_outer_tip[0, 0]))
+    assert bool(stable.stable[0]) and 80 < abs(th) < 90
+    mirror = tp.solve(sc, rotation=[0.0, math.pi], options=opts,
+                      initial=_mirror(stable.q))
+    assert bool(mirror.converged[0])
+    th_m = math.degrees(float(mirror.relative_rotation_at_outer_tip[0, 0]))
+    assert abs(th + th_m) < 1e-6 and bool(mirror.stable[0])
+    saddle = tp.solve(sc, options=tp.SolverOptions(order=5, method="root"))
+    assert bool(saddle.converged[0]) and not bool(saddle.stable[0])
+    assert abs(abs(math.degrees(float(saddle.relative_rotation_at_outer_tip[0, 0]))) - 180) < 1e-6
+    assert float(saddle.energy[0]) > float(stable.energy[0])
+
+
+def _mirror(q: torch.Tensor) -> torch.Tensor:
+    """Mirror a 2-tube solution about the x-z plane: u_x -> -u_x, torsions -> -torsions."""
+    N = 2
+    B, nq = q.shape
+    X = q[:, N:].reshape(B, 2 * N, 2 + N, -1).clone()
+    X[:, :, 0] *= -1
+    X[:, :, 2:] *= -1
+    return torch.cat([-q[:, :N], X.reshape(B, -1)], -1)
+
+
+def test_order_selection_reports_error_estimate():
+    sc = tp.load_scene("renda2021_fig3")
+    eq = tp.solve(sc, options=tp.SolverOptions(accuracy=1e-7))
+    assert eq.order >= 3
+    assert float(eq.error_estimate[0]) <= 1e-7
+    coarse = tp.solve(sc, options=tp.SolverOptions(accuracy=1e-3))
+    assert coarse.order <= eq.order
+    assert int(coarse.dofs[0]) <= int(eq.dofs[0])
+
+
+def test_fully_retracted_tube_and_zero_length_sections():
+    """A tube entirely in the guide contributes no coordinates; cuts that coincide make
+    zero-length sections, which must not make the Hessian singular."""
+    sc = two_tubes(lengths=(0.1, 0.15), straight=(0.05, 0.05), D=(0.12, 0.12))
+    eq = tp.solve(sc)
+    assert bool(eq.converged[0]) and bool(eq.stable[0])
+    assert float(eq.tip_position[0, 2]) == pytest.approx(0.03, abs=1e-3)
+    # Inner tube's transition exactly at the outer tube's end (coinciding cuts).
+    sc2 = two_tubes(lengths=(0.1, 0.2), straight=(0.0, 0.1), D=(0.0, 0.0))
+    eq2 = tp.solve(sc2)
+    assert bool(eq2.converged[0]) and bool(eq2.stable[0])
+
+
+def test_continuity_across_section_cut():
+    """A 1 um insertion step that moves a cut (the inner transition past the outer end) moves
+    the tip by about 1 um, not by a jump."""
+    sc = two_tubes(lengths=(0.1, 0.2), straight=(0.0, 0.1), D=(0.0, 0.0), alpha2=0.8)
+    opts = tp.SolverOptions(order=4)
+    a = tp.solve(sc, insertion=[0.0, 0.0], options=opts)
+    b = tp.solve(sc, insertion=[0.0, 1e-6], options=opts)
+    assert float((a.tip_position - b.tip_position).norm()) < 1e-5
+
+
+def test_bad_inputs_name_the_field():
+    sc = tp.load_scene("renda2021_fig3")
+    with pytest.raises(ValueError, match="insertion"):
+        tp.solve(sc, insertion=[0.1])
+    with pytest.raises(ValueError, match="insertion"):
+        tp.solve(sc, insertion=[0.2, 0.1])
+    with pytest.raises(ValueError, match="rotation"):
+        tp.solve(sc, rotation=[float("nan"), 0.0])
+    with pytest.raises(ValueError, match="options.method"):
+        tp.SolverOptions(method="bfgs")
+    with pytest.raises(ValueError, match="options.accuracy"):
+        tp.SolverOptions(accuracy=-1.0)
+
+
+def test_nonconvergence_is_reported_not_nan():
+    sc = tp.load_scene("renda2021_fig3")
+    eq = tp.solve(sc, rotation=[0.0, 2.0],
+                  options=tp.SolverOptions(order=3, max_iter=1, on_failure="ignore"))
+    assert not bool(eq.converged[0])
+    assert "residual" in eq.reason[0]
+    with pytest.raises(tp.SolverError):
+        tp.solve(sc, rotation=[0.0, 2.0],
+                 options=tp.SolverOptions(order=3, max_iter=1, on_failure="raise"))

@@ -1,0 +1,84 @@
+"""SO(3)/SE(3) helpers on plain tensors (stage 3→4: strains to poses).
+
+Twists are ordered ``(omega, v)`` — angular first, as in the paper (``xi = (k, u)``).
+Poses are ``(..., 4, 4)`` homogeneous matrices; every function broadcasts over leading dims.
+Small-angle branches use Taylor series selected by ``torch.where`` with a clamped denominator,
+so neither branch can put NaN into values or gradients.
+"""
+
+from __future__ import annotations
+
+import torch
+
+__all__ = ["hat", "exp_se3", "exp_so3", "magnus4_step", "rot_z", "se3_bracket"]
+
+
+def hat(w: torch.Tensor) -> torch.Tensor:
+    """``(..., 3) -> (..., 3, 3)`` skew matrix with ``hat(a) @ b = a x b``."""
+    zero = torch.zeros_like(w[..., 0])
+    return torch.stack([
+        torch.stack([zero, -w[..., 2], w[..., 1]], -1),
+        torch.stack([w[..., 2], zero, -w[..., 0]], -1),
+        torch.stack([-w[..., 1], w[..., 0], zero], -1),
+    ], -2)
+
+
+def _coefficients(theta2: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
+    """``a = sin t / t``, ``b = (1 - cos t) / t^2``, ``c = (t - sin t) / t^3`` as functions of
+    ``t^2``, NaN-free for ``t -> 0`` (series below 1e-4 rad^2... chosen per dtype)."""
+    small = theta2 < (1e-6 if theta2.dtype == torch.float64 else 1e-3)
+    t2 = torch.where(small, torch.ones_like(theta2), theta2)
+    t = torch.sqrt(t2)
+    a = torch.where(small, 1 - theta2 / 6 + theta2**2 / 120, torch.sin(t) / t)
+    b = torch.where(small, 0.5 - theta2 / 24 + theta2**2 / 720, (1 - torch.cos(t)) / t2)
+    c = torch.where(small, 1.0 / 6 - theta2 / 120 + theta2**2 / 5040, (t - torch.sin(t)) / (t2 * t))
+    return a, b, c
+
+
+def exp_so3(w: torch.Tensor) -> torch.Tensor:
+    """Rodrigues: ``(..., 3) -> (..., 3, 3)``."""
+    a, b, _ = _coefficients((w * w).sum(-1))
+    W = hat(w)
+    eye = torch.eye(3, dtype=w.dtype, device=w.device).expand(W.shape)
+    return eye + a[..., None, None] * W + b[..., None, None] * (W @ W)
+
+
+def exp_se3(xi: torch.Tensor) -> torch.Tensor:
+    """Exponential of a twist ``(..., 6) = (omega, v) -> (..., 4, 4)``."""
+    w, v = xi[..., :3], xi[..., 3:]
+    a, b, c = _coefficients((w * w).sum(-1))
+    W = hat(w)
+    W2 = W @ W
+    eye = torch.eye(3, dtype=xi.dtype, device=xi.device).expand(W.shape)
+    R = eye + a[..., None, None] * W + b[..., None, None] * W2
+    V = eye + b[..., None, None] * W + c[..., None, None] * W2
+    p = (V @ v[..., None])[..., 0]
+    top = torch.cat([R, p[..., None]], -1)
+    bottom = torch.zeros(top.shape[:-2] + (1, 4), dtype=xi.dtype, device=xi.device)
+    bottom[..., 0, 3] = 1.0
+    return torch.cat([top, bottom], -2)
+
+
+def se3_bracket(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """Lie bracket ``[x, y] = ad_x y`` of twists ``(omega, v)``."""
+    wx, vx, wy, vy = x[..., :3], x[..., 3:], y[..., :3], y[..., 3:]
+    return torch.cat([torch.cross(wx, wy, dim=-1),
+                      torch.cross(wx, vy, dim=-1) - torch.cross(wy, vx, dim=-1)], -1)
+
+
+def magnus4_step(xi1: torch.Tensor, xi2: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
+    """4th-order Magnus (Zanna) step for ``g' = g hat(xi)``: ``g(s+h) = g(s) exp(Omega)`` with
+    ``Omega = h/2 (xi1 + xi2) + sqrt(3)/12 h^2 [xi1, xi2]``, ``xi1, xi2`` the strains at the two
+    Gauss points ``s + h (1/2 -+ sqrt(3)/6)``. ``h`` broadcasts as ``(...,)``."""
+    h = h[..., None]
+    omega = 0.5 * h * (xi1 + xi2) + (3.0**0.5 / 12.0) * h * h * se3_bracket(xi1, xi2)
+    return exp_se3(omega)
+
+
+def rot_z(angle: torch.Tensor) -> torch.Tensor:
+    """Rotation about z: ``(...,) -> (..., 3, 3)``."""
+    c, s = torch.cos(angle), torch.sin(angle)
+    zero, one = torch.zeros_like(angle), torch.ones_like(angle)
+    return torch.stack([torch.stack([c, -s, zero], -1),
+                        torch.stack([s, c, zero], -1),
+                        torch.stack([zero, zero, one], -1)], -2)

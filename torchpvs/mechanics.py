@@ -1,0 +1,271 @@
+"""Stage 4 — strains, energy and the total potential of the discrete PVS model.
+
+The equilibrium is a stationary point of the total potential (physics.md): the paper's projected
+equations (26)/(33)/(35), generalized to N tubes, are its gradient. With the backbone bending
+``u`` in a twist-free frame and tube angles ``psi_j`` about the tangent, tube ``j`` has bending
+``Rz(psi_j)^T u`` and torsion ``psi_j'``, so
+
+    U = sum_j int_free 1/2 EI_j |u - Rz(psi_j) u*_j|^2 + 1/2 GJ_j (psi_j' - u*_jz)^2 ds
+      + sum_j 1/2 GJ_j D_j w_j^2  +  (stored energy of precurved material held in the guide)
+      - F . p_tip  -  (virtual work of the tip moment)
+
+All functions here are batch-agnostic (``...`` leading dims) so that they run on a batch directly
+and per element under ``torch.func.vmap`` (for exact Hessians).
+"""
+
+from __future__ import annotations
+
+import torch
+
+from .lie import magnus4_step, rot_z
+
+__all__ = ["elastic_energy", "node_fields", "potential", "section_start_poses", "tip_pose"]
+
+
+def _poly(coef: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    """``coef (..., N, 3, P)``, ``t (..., N)`` -> ``(..., N, 3)``."""
+    out = torch.zeros(t.shape + (3,), dtype=t.dtype, device=t.device)
+    for p in range(coef.shape[-1] - 1, -1, -1):
+        out = out * t[..., None] + coef[..., p]
+    return out
+
+
+def _poly_int(coef: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    """``int_0^t`` of the z-polynomial: ``coef (..., N, P)``, ``t (..., N)`` -> ``(..., N)``."""
+    out = torch.zeros_like(t)
+    for p in range(coef.shape[-1] - 1, -1, -1):
+        out = (out + coef[..., p] / (p + 1)) * t
+    return out
+
+
+def split_q(q: torch.Tensor, lay: dict[str, torch.Tensor]):
+    """``q (..., nq)`` -> guide twists ``w (..., N)``, bending ``a (..., S, 2, n)``,
+    torsion ``c (..., S, N, n)``; inactive coordinates are zeroed by the mask."""
+    N = lay["EI"].shape[-1]
+    S = lay["h"].shape[-1]
+    q = q * lay["qmask"]
+    w = q[..., :N]
+    X = q[..., N:].reshape(q.shape[:-1] + (S, 2 + N, -1))
+    return w, X[..., :2, :], X[..., 2:, :]
+
+
+def node_fields(q: torch.Tensor, lay: dict[str, torch.Tensor], xi: torch.Tensor,
+                phi: torch.Tensor, Qb: torch.Tensor) -> dict[str, torch.Tensor]:
+    """Strains and angles at normalized points ``xi (G,)`` of every section.
+
+    Returns ``u (..., S, G, 2)`` backbone bending [1/m] in the twist-free frame,
+    ``psi (..., S, G, N)`` tube angles [rad], ``dpsi`` torsions [1/m], ``ustar (..., S, G, N, 3)``
+    precurvatures in the tube frames, ``Ru (..., S, G, N, 2)`` = ``Rz(psi) u*_xy``, and per
+    section the angle increments ``inc (..., S, N)`` and start angles ``psi_start``.
+    """
+    w, a, c = split_q(q, lay)
+    h, start = lay["h"], lay["start"]
+    present, curved, presc = lay["present"], lay["curved"], lay["presc"]
+    s = start[..., None] + 0.5 * (xi + 1.0) * h[..., None]                 # (..., S, G)
+    t = s[..., None] - lay["tau"][..., None, None, :]                      # (..., S, G, N)
+    coef = lay["coef"][..., None, None, :, :, :]                           # (..., 1, 1, N, 3, P)
+    ustar = _poly(coef, t) * curved[..., None, :, None]
+    # phi/Qb are (G, n) or (..., S, G, n): broadcast products rather than einsum.
+    u = (a[..., None, :, :] * phi[..., None, :]).sum(-1)                 # (..., S, G, 2)
+    dpsi = (c[..., None, :, :] * phi[..., None, :]).sum(-1)              # (..., S, G, N)
+    # Prescribed sections: strain = precurvature (twist u*_z integrated exactly).
+    zc = lay["coef"][..., 2, :][..., None, :, :]                           # (..., 1, N, P)
+    t0 = start[..., None] - lay["tau"][..., None, :]                       # (..., S, N)
+    Z0 = _poly_int(zc, t0)
+    pmask = curved * presc[..., None]                                      # (..., S, N)
+    Zt = _poly_int(zc[..., None, :, :], t)
+    presc_local = (Zt - Z0[..., None, :]) * pmask[..., None, :]
+    presc_inc = (_poly_int(zc, t0 + h[..., None]) - Z0) * pmask
+    inc = h[..., None] * c[..., 0] + presc_inc
+    psi0 = lay["psi0"] + lay["D"] * w
+    psi_start = psi0[..., None, :] + torch.cumsum(inc, -2) - inc
+    psi = (psi_start[..., None, :] + 0.5 * h[..., None, None] *
+           (c[..., None, :, :] * Qb[..., None, :]).sum(-1) + presc_local)
+    cs, sn = torch.cos(psi), torch.sin(psi)
+    ux, uy = ustar[..., 0], ustar[..., 1]
+    Ru = torch.stack([cs * ux - sn * uy, sn * ux + cs * uy], -1)
+    u = u + presc[..., None, None] * (Ru * present[..., None, :, None]).sum(-2)
+    dpsi = dpsi + pmask[..., None, :] * ustar[..., 2]
+    return {"s": s, "u": u, "psi": psi, "dpsi": dpsi, "ustar": ustar, "Ru": Ru, "inc": inc,
+            "psi_start": psi_start, "psi0": psi0}
+
+
+def elastic_energy(q: torch.Tensor, lay: dict[str, torch.Tensor],
+                   tab: dict[str, torch.Tensor]) -> torch.Tensor:
+    """Stored elastic energy ``(...,)`` [J] of the whole robot, guide included."""
+    f = node_fields(q, lay, tab["xq"], tab["phi_q"], tab["Q_q"])
+    EI, GJ = lay["EI"][..., None, None, :], lay["GJ"][..., None, None, :]
+    diff = f["u"][..., None, :] - f["Ru"]
+    bend = 0.5 * EI * (diff**2).sum(-1)
+    tors = 0.5 * GJ * (f["dpsi"] - f["ustar"][..., 2]) ** 2
+    dens = ((bend + tors) * lay["present"][..., None, :]).sum(-1)          # (..., S, Q)
+    w, _, _ = split_q(q, lay)
+    guide = (0.5 * lay["GJ"] * lay["D"] * w**2).sum(-1)
+    return (dens * lay["W"]).sum((-1, -2)) + guide + lay["guide_const"]
+
+
+def _twists(u: torch.Tensor) -> torch.Tensor:
+    """Backbone strain twists ``(omega, v) = ((ux, uy, 0), e3)`` from ``u (..., 2)``."""
+    zero = torch.zeros_like(u[..., :1])
+    one = torch.ones_like(u[..., :1])
+    return torch.cat([u, zero, zero, zero, one], -1)
+
+
+def section_start_poses(q: torch.Tensor, lay: dict[str, torch.Tensor],
+                        tab: dict[str, torch.Tensor]) -> tuple[torch.Tensor, dict]:
+    """Poses ``(..., S + 1, 4, 4)`` of the backbone frame at every cut (orifice first, tip last),
+    by the 4th-order Magnus scheme with ``n_magnus`` steps per section."""
+    f = node_fields(q, lay, tab["xm"], tab["phi_m"], tab["Q_m"])
+    xi = _twists(f["u"])                                                   # (..., S, 2m, 6)
+    m = xi.shape[-2] // 2
+    xi = xi.reshape(xi.shape[:-2] + (m, 2, 6))
+    hs = (lay["h"] / m)[..., None].expand(xi.shape[:-2])
+    steps = magnus4_step(xi[..., 0, :], xi[..., 1, :], hs)                  # (..., S, m, 4, 4)
+    S = steps.shape[-4]
+    g = torch.eye(4, dtype=q.dtype, device=q.device).expand(steps.shape[:-4] + (4, 4))
+    poses = [g]
+    for k in range(S):
+        for i in range(m):
+            g = g @ steps[..., k, i, :, :]
+        poses.append(g)
+    return torch.stack(poses, -3), f
+
+
+def tip_pose(q: torch.Tensor, lay: dict[str, torch.Tensor], tab: dict[str, torch.Tensor]):
+    """Tip position ``(..., 3)`` and the material frame ``(..., 3, 3)`` of the tube forming the
+    tip (base frame), plus the tube angles at the tip ``(..., N)``."""
+    poses, f = section_start_poses(q, lay, tab)
+    g = poses[..., -1, :, :]
+    psi_tip = f["psi0"] + f["inc"].sum(-2)                                  # (..., N)
+    angle = (psi_tip * lay["tip_tube"]).sum(-1)
+    R = g[..., :3, :3] @ rot_z(angle)
+    return g[..., :3, 3], R, psi_tip
+
+
+def _skew_vee(A: torch.Tensor) -> torch.Tensor:
+    """``vee((A - A^T) / 2)``: the rotation vector of ``A`` to first order near identity."""
+    return 0.5 * torch.stack([A[..., 2, 1] - A[..., 1, 2], A[..., 0, 2] - A[..., 2, 0],
+                              A[..., 1, 0] - A[..., 0, 1]], -1)
+
+
+def potential(q: torch.Tensor, lay: dict[str, torch.Tensor], tab: dict[str, torch.Tensor],
+              q_ref: torch.Tensor | None = None, with_load: bool = True) -> torch.Tensor:
+    """Total potential ``(...,)`` [J]: elastic energy minus the work of the tip load.
+
+    A dead tip force has the potential ``-F . p_tip``. A dead moment is not conservative in 3D;
+    its virtual work ``M . delta theta`` (spatial rotation) is represented by
+    ``M . vee(skew(R(q) R(q_ref)^T))``, whose gradient at ``q = q_ref`` is exactly ``J_theta^T M``
+    (so stationary points are the equilibria) and whose Hessian is the symmetric part of the load
+    stiffness.
+    """
+    U = elastic_energy(q, lay, tab)
+    if not with_load:
+        return U
+    p, R, _ = tip_pose(q, lay, tab)
+    work = (lay["force"] * p).sum(-1)
+    if q_ref is not None:
+        with torch.no_grad():
+            _, R0, _ = tip_pose(q_ref.detach(), lay, tab)
+        work = work + (lay["moment"] * _skew_vee(R @ R0.transpose(-1, -2))).sum(-1)
+    return U - work
+
+
+# ---------------------------------------------------------------------------------------------
+# Exact gradient and Hessian of the elastic energy without autograd.
+#
+# At every quadrature node the local fields z = (u, psi_j, psi_j') are *linear* in q (strains are
+# basis expansions, angles their exact integrals), so z = M q + z0 with maps M fixed for a given
+# layout. With the node density e(z) = sum_j 1/2 EI_j |u - Rz(psi_j) u*_j|^2
+# + 1/2 GJ_j (psi_j' - u*_jz)^2, the exact derivatives are sums over nodes of
+# M^T (de/dz) and M^T (d2e/dz2) M, where (Ru_j = Rz(psi_j) u*_j, J = [[0, -1], [1, 0]]):
+#   de/du = sum_j EI_j (u - Ru_j),      de/dpsi_j = -EI_j (Ru_j x u),   de/dpsi_j' = GJ_j (psi_j' - u*_jz)
+#   d2e/du2 = sum_j EI_j I,  d2e/du dpsi_j = -EI_j J Ru_j,  d2e/dpsi_j2 = EI_j u . Ru_j,  d2e/dpsi'2 = GJ_j
+# The u-u and psi'-psi' blocks do not depend on q and are assembled once per solve.
+
+def build_maps(lay: dict[str, torch.Tensor], tab: dict[str, torch.Tensor],
+               nq: int) -> dict[str, torch.Tensor]:
+    """Linear maps ``q -> (u, psi, psi')`` at the energy nodes of active sections, obtained by
+    evaluating :func:`node_fields` on the unit coordinate vectors (so they cannot disagree)."""
+    B = lay["h"].shape[0]
+    dtype, device = lay["h"].dtype, lay["h"].device
+    basis = torch.cat([torch.zeros(1, nq, dtype=dtype, device=device),
+                       torch.eye(nq, dtype=dtype, device=device)], 0).expand(B, nq + 1, nq)
+    lay1 = {k: v.detach().unsqueeze(1) for k, v in lay.items()}
+    with torch.no_grad():
+        f = node_fields(basis, lay1, tab["xq"], tab["phi_q"], tab["Q_q"])
+    act = lay["active"].detach()[:, :, None]                                # (B, S, 1)
+
+    def lin(x):  # (B, nq+1, S, Q, C) -> map (B, S*Q*C, nq), offset (B, S*Q*C)
+        m = (x[:, 1:] - x[:, :1]) * act[:, None, :, :, None]
+        return m.flatten(2).transpose(1, 2).contiguous(), (x[:, 0] * act[..., None]).flatten(1)
+
+    Mu, u0 = lin(f["u"])
+    Mpsi, psi0 = lin(f["psi"])
+    Mdp, dp0 = lin(f["dpsi"])
+    S, Q = lay["h"].shape[-1], tab["xq"].shape[0]
+    N = lay["EI"].shape[-1]
+    W = lay["W"].detach()                                                   # (B, S, Q)
+    Pn = lay["present"].detach()[:, :, None, :].expand(B, S, Q, N)
+    EIp = lay["EI"].detach()[:, None, None, :] * Pn
+    GJp = lay["GJ"].detach()[:, None, None, :] * Pn
+    wu = (W * EIp.sum(-1))[..., None].expand(B, S, Q, 2).reshape(B, -1)
+    wdp = (W[..., None] * GJp).reshape(B, -1)
+    H_const = Mu.transpose(1, 2) @ (wu[..., None] * Mu) + Mdp.transpose(1, 2) @ (wdp[..., None] * Mdp)
+    qmask = lay["qmask"].detach()
+    guide = torch.zeros(B, nq, dtype=dtype, device=device)
+    guide[:, :N] = lay["GJ"].detach() * lay["D"].detach() * qmask[:, :N]
+    H_const = H_const + torch.diag_embed(guide)
+    return {"Mu": Mu, "u0": u0, "Mpsi": Mpsi, "psi0": psi0, "Mdp": Mdp, "dp0": dp0,
+            "ustar": f["ustar"][:, 0].detach(), "W": W, "EIp": EIp, "GJp": GJp,
+            "H_const": H_const, "guide": guide, "guide_const": lay["guide_const"].detach(),
+            "shape": torch.tensor([S, Q, N])}
+
+
+def _local(q: torch.Tensor, maps: dict[str, torch.Tensor]):
+    S, Q, N = (int(v) for v in maps["shape"])
+    B = q.shape[0]
+    u = (maps["Mu"] @ q[..., None])[..., 0] + maps["u0"]
+    psi = (maps["Mpsi"] @ q[..., None])[..., 0] + maps["psi0"]
+    dp = (maps["Mdp"] @ q[..., None])[..., 0] + maps["dp0"]
+    u = u.reshape(B, S, Q, 2)
+    psi = psi.reshape(B, S, Q, N)
+    dp = dp.reshape(B, S, Q, N)
+    us = maps["ustar"]
+    cs, sn = torch.cos(psi), torch.sin(psi)
+    Ru = torch.stack([cs * us[..., 0] - sn * us[..., 1], sn * us[..., 0] + cs * us[..., 1]], -1)
+    return u, psi, dp, Ru, us
+
+
+def elastic_energy_maps(q: torch.Tensor, maps: dict[str, torch.Tensor]) -> torch.Tensor:
+    """Same value as :func:`elastic_energy`, through the precomputed maps (``q (B, nq)``)."""
+    u, _, dp, Ru, us = _local(q, maps)
+    diff = u[..., None, :] - Ru
+    dens = 0.5 * (maps["EIp"] * (diff**2).sum(-1) + maps["GJp"] * (dp - us[..., 2]) ** 2).sum(-1)
+    guide = 0.5 * (maps["guide"] * q**2).sum(-1)
+    return (dens * maps["W"]).sum((-1, -2)) + guide + maps["guide_const"]
+
+
+def elastic_grad_hess(q: torch.Tensor, maps: dict[str, torch.Tensor]):
+    """Exact gradient ``(B, nq)`` and Hessian ``(B, nq, nq)`` of the elastic energy."""
+    u, _, dp, Ru, us = _local(q, maps)
+    B = q.shape[0]
+    W = maps["W"][..., None]                                                # (B, S, Q, 1)
+    EIw = W * maps["EIp"]
+    diff = u[..., None, :] - Ru                                             # (B, S, Q, N, 2)
+    gu = (EIw[..., None] * diff).sum(-2)                                    # (B, S, Q, 2)
+    cross = Ru[..., 0] * u[..., None, 1] - Ru[..., 1] * u[..., None, 0]     # Ru x u (z comp.)
+    gpsi = -EIw * cross
+    gdp = W * maps["GJp"] * (dp - us[..., 2])
+    Mu, Mpsi, Mdp = maps["Mu"], maps["Mpsi"], maps["Mdp"]
+    grad = ((Mu.transpose(1, 2) @ gu.reshape(B, -1, 1)) + (Mpsi.transpose(1, 2) @ gpsi.reshape(B, -1, 1))
+            + (Mdp.transpose(1, 2) @ gdp.reshape(B, -1, 1)))[..., 0] + maps["guide"] * q
+    hpp = (EIw * (u[..., None, :] * Ru).sum(-1)).reshape(B, -1)            # d2e/dpsi2
+    JRu = torch.stack([-Ru[..., 1], Ru[..., 0]], -1)                        # J Ru
+    hup = -EIw[..., None] * JRu                                             # (B, S, Q, N, 2)
+    nq = q.shape[-1]
+    S, Q, N = (int(v) for v in maps["shape"])
+    Mpsi4 = Mpsi.reshape(B, S, Q, N, nq)
+    Y = torch.einsum("bsqjd,bsqjn->bsqdn", hup, Mpsi4).reshape(B, -1, nq)
+    Hc = Mu.transpose(1, 2) @ Y
+    H = maps["H_const"] + Mpsi.transpose(1, 2) @ (hpp[..., None] * Mpsi) + Hc + Hc.transpose(1, 2)
+    return grad, H

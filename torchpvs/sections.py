@@ -1,0 +1,172 @@
+"""Stage 2 — scene + actuation -> sections: where the free backbone is cut and what each piece holds.
+
+The backbone beyond the orifice, ``s in [0, s_tip]``, is cut at every tube end ``l_j = L_j - D_j``
+and every straight-to-curved transition ``tau_j = Ls_j - D_j`` that lies on the tube. With ``N``
+tubes there are at most ``2N`` cuts, so every batch element gets the same *number* of sections,
+``S = 2N``, obtained by sorting the ``2N`` candidate cuts clipped to ``[0, l_j]``; sections of zero
+length simply carry no coordinates. Elements may therefore have different layouts (different
+tubes, transitions and lengths per section) in one batched tensor.
+
+Coordinates (``q``, all strains in 1/m so that the stiffness has one unit, J·m²):
+
+* ``w_j`` — the uniform twist rate of tube ``j`` inside the guide (torsion only there: the exact
+  solution in the straight guide has constant torsional moment), active when ``D_j > 0`` and the
+  tube reaches the free space;
+* per section ``k``: bending curvature of the shared backbone in a twist-free (Bishop) frame,
+  ``u(s) = sum_p phi_p(xi) a_{k,:,p}`` (2 x n), and each present tube's torsion
+  ``psi_j'(s) = sum_p phi_p(xi) c_{k,j,p}`` (N x n), ``phi_p`` normalized Legendre polynomials.
+
+Sections holding a single tube with no load beyond them are *prescribed*: their strain equals the
+precurvature exactly (the paper's ``p_2 = 1``), so they carry no coordinates.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from .basis import gauss_legendre, legendre_basis
+
+__all__ = ["Discretization", "TubeTensors", "build_layout", "n_coordinates"]
+
+
+@dataclass(frozen=True)
+class TubeTensors:
+    """Tube properties as tensors, broadcastable to ``(B, N)`` (``coef``: ``(B, N, 3, P)``).
+
+    ``EI``, ``GJ`` [N·m²]; ``length``, ``straight`` [m]; ``coef`` precurvature polynomial
+    coefficients in the arc length from the start of the curved part (conventions.md).
+    """
+
+    EI: torch.Tensor
+    GJ: torch.Tensor
+    length: torch.Tensor
+    straight: torch.Tensor
+    coef: torch.Tensor
+
+
+@dataclass(frozen=True)
+class Discretization:
+    """Static discretization choices: basis functions per strain, quadrature and Magnus steps."""
+
+    n_basis: int
+    n_quad: int
+    n_magnus: int
+
+    def tables(self, dtype: torch.dtype, device: torch.device) -> dict[str, torch.Tensor]:
+        xq, wq = gauss_legendre(self.n_quad, dtype=dtype, device=device)
+        phi_q, Q_q = legendre_basis(xq, self.n_basis)
+        # Magnus sub-steps: n_magnus equal pieces of [-1, 1], two Gauss points each.
+        m = self.n_magnus
+        centers = -1.0 + (2.0 * torch.arange(m, dtype=dtype, device=device) + 1.0) / m
+        off = (1.0 / m) / 3.0**0.5
+        xm = torch.stack([centers - off, centers + off], -1).reshape(-1)
+        phi_m, Q_m = legendre_basis(xm, self.n_basis)
+        return {"xq": xq, "wq": wq, "phi_q": phi_q, "Q_q": Q_q, "xm": xm,
+                "phi_m": phi_m, "Q_m": Q_m}
+
+
+def n_coordinates(n_tubes: int, n_basis: int) -> int:
+    """Length of ``q``: ``N`` guide twists + ``2N`` sections x ``(2 + N) n`` strain coefficients."""
+    return n_tubes + 2 * n_tubes * (2 + n_tubes) * n_basis
+
+
+def _poly_antiderivative_value(coef: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    """``int_0^t sum_p coef_p x^p dx`` with ``coef (..., P)`` and ``t (...)``."""
+    out = torch.zeros_like(t)
+    P = coef.shape[-1]
+    for p in range(P - 1, -1, -1):
+        out = (out + coef[..., p] / (p + 1)) * t
+    return out
+
+
+def build_layout(tubes: TubeTensors, D: torch.Tensor, alpha: torch.Tensor,
+                 force: torch.Tensor, moment: torch.Tensor, loaded: torch.Tensor,
+                 disc: Discretization, *, min_section: float = 1e-12) -> dict[str, torch.Tensor]:
+    """Sections, masks and fixed quantities for a batch.
+
+    Args:
+        tubes: properties, broadcastable to ``(B, N)``.
+        D, alpha: ``(B, N)`` insertions [m] and base rotations [rad].
+        force, moment: ``(B, 3)`` tip load [N], [N·m], base frame.
+        loaded: ``(B,)`` bool, whether the element has a nonzero tip load.
+        disc: the discretization.
+        min_section: sections shorter than this [m] get no coordinates.
+
+    Returns a dict of tensors with leading dim ``B`` (so it can be ``vmap``-ed): see the keys
+    below; everything is differentiable w.r.t. ``D``, ``alpha`` and the tube tensors.
+    """
+    B, N = D.shape
+    dtype, device = D.dtype, D.device
+    EI = tubes.EI.expand(B, N)
+    GJ = tubes.GJ.expand(B, N)
+    L = tubes.length.expand(B, N)
+    Ls = tubes.straight.expand(B, N)
+    coef = tubes.coef.expand(B, N, 3, tubes.coef.shape[-1])
+
+    ell = torch.clamp(L - D, min=0.0)                      # exposed lengths (B, N)
+    tau = Ls - D                                           # transition positions on the backbone
+    tau_clip = torch.minimum(torch.clamp(tau, min=0.0), ell)
+    cuts, _ = torch.sort(torch.cat([ell, tau_clip], -1), dim=-1)   # (B, S)
+    S = 2 * N
+    start = torch.cat([torch.zeros_like(cuts[:, :1]), cuts[:, :-1]], -1)
+    h = cuts - start
+    nonempty = h > min_section
+    mid = (start + 0.5 * h).detach()
+    present = (mid[..., None] < ell.detach()[:, None, :]) & nonempty[..., None]   # (B, S, N)
+    curved = (mid[..., None] > tau.detach()[:, None, :]) & present
+    n_present = present.sum(-1)
+    multi = n_present >= 2
+    active = nonempty & (multi | loaded[:, None])
+    presc = nonempty & ~active & (n_present == 1)
+
+    # Coordinate mask (B, nq): guide twists, then per section (2 + N) x n.
+    n = disc.n_basis
+    w_mask = (D > 0) & (ell > 0)
+    sec_mask = torch.cat([active[..., None].expand(B, S, 2),
+                          present & active[..., None]], -1)          # (B, S, 2 + N)
+    qmask = torch.cat([w_mask, sec_mask[..., None].expand(B, S, 2 + N, n).reshape(B, -1)], -1)
+
+    # Fixed guide quantities: twist of precurved material and the bending energy it stores
+    # while held straight (1/2 EI |u*_xy|^2 per metre, physics.md).
+    guided = torch.minimum(D, L)                                    # guided material length
+    t_guide = torch.clamp(guided - Ls, min=0.0)                     # curved part inside the guide
+    psi0 = alpha + _poly_antiderivative_value(coef[..., 2, :], t_guide)
+    xg, wg = gauss_legendre(max(2, coef.shape[-1] + 1), dtype=dtype, device=device)
+    tg = 0.5 * (xg + 1.0) * t_guide[..., None]                      # (B, N, G)
+    uxy = _poly_eval(coef[..., :2, :, None], tg[..., None, :])      # (B, N, 2, G)
+    guide_const = (0.5 * EI * (0.5 * t_guide) * ((uxy**2).sum(-2) * wg).sum(-1)).sum(-1)
+
+    # Quadrature weights for the energy (only active sections store coordinate-dependent energy).
+    tab = disc.tables(dtype, device)
+    W = 0.5 * h[..., None] * tab["wq"] * active[..., None]
+
+    # The tube forming the tip: the largest exposed length, ties -> innermost.
+    idx = torch.arange(N, device=device, dtype=dtype)
+    score = ell.detach() + 1e-9 * idx * (ell.detach().amax(-1, keepdim=True) + 1e-12)
+    tip_tube = torch.nn.functional.one_hot(score.argmax(-1), N).to(dtype)
+    s_tip = ell.amax(-1)
+    # Sections that end at or before the outer tube's distal end (for theta_j(l_1)).
+    before_l1 = (cuts.detach() <= ell.detach()[:, :1] + 1e-12).to(dtype)
+
+    f = lambda m: m.to(dtype)  # noqa: E731 - masks as float for arithmetic
+    return {
+        "EI": EI, "GJ": GJ, "D": D, "alpha": alpha, "coef": coef, "tau": tau, "ell": ell,
+        "start": start, "h": h, "present": f(present), "curved": f(curved),
+        "active": f(active), "presc": f(presc), "qmask": f(qmask), "psi0": psi0,
+        "guide_const": guide_const, "W": W, "force": force, "moment": moment,
+        "tip_tube": tip_tube, "s_tip": s_tip, "before_l1": before_l1,
+        "loaded": f(loaded),
+    }
+
+
+def _poly_eval(coef: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+    """Horner: ``coef (..., P, G?)`` broadcast against ``t``; coefficients on dim -2 when ``t``
+    carries a trailing node dim (see callers), else on dim -1."""
+    P = coef.shape[-2]
+    out = torch.zeros(torch.broadcast_shapes(coef[..., 0, :].shape, t.shape),
+                      dtype=t.dtype, device=t.device)
+    for p in range(P - 1, -1, -1):
+        out = out * t + coef[..., p, :]
+    return out
