@@ -184,26 +184,57 @@ def potential(q: torch.Tensor, lay: dict[str, torch.Tensor], tab: dict[str, torc
 
 def build_maps(lay: dict[str, torch.Tensor], tab: dict[str, torch.Tensor],
                nq: int) -> dict[str, torch.Tensor]:
-    """Linear maps ``q -> (u, psi, psi')`` at the energy nodes of active sections, obtained by
-    evaluating :func:`node_fields` on the unit coordinate vectors (so they cannot disagree)."""
-    B = lay["h"].shape[0]
-    dtype, device = lay["h"].dtype, lay["h"].device
-    basis = torch.cat([torch.zeros(1, nq, dtype=dtype, device=device),
-                       torch.eye(nq, dtype=dtype, device=device)], 0).expand(B, nq + 1, nq)
-    lay1 = {k: v.detach().unsqueeze(1) for k, v in lay.items()}
-    with torch.no_grad():
-        f = node_fields(basis, lay1, tab["xq"], tab["phi_q"], tab["Q_q"])
-    act = lay["active"].detach()[:, :, None]                                # (B, S, 1)
+    """Linear maps ``q -> (u, psi, psi')`` at the energy nodes of active sections.
 
-    def lin(x):  # (B, nq+1, S, Q, C) -> map (B, S*Q*C, nq), offset (B, S*Q*C)
-        m = (x[:, 1:] - x[:, :1]) * act[:, None, :, :, None]
-        return m.flatten(2).transpose(1, 2).contiguous(), (x[:, 0] * act[..., None]).flatten(1)
-
-    Mu, u0 = lin(f["u"])
-    Mpsi, psi0 = lin(f["psi"])
-    Mdp, dp0 = lin(f["dpsi"])
-    S, Q = lay["h"].shape[-1], tab["xq"].shape[0]
+    Rows are nodes ``(k, i)`` x components, columns the coordinates. With ``m = (2 + N) n`` and
+    section ``k`` starting at column ``N + k m``: ``u_d`` reads ``a_{k,d,:}`` through ``phi_i``,
+    ``psi_j'`` reads ``c_{k,j,:}`` through ``phi_i``, and ``psi_j`` = ``psi0_j + D_j w_j
+    + sum_{k'<k} h_k' c_{k',j,0} + (h_k / 2) Q_i . c_{k,j,:}`` (exact integral of the torsion).
+    """
+    h = lay["h"].detach()
+    B, S = h.shape
     N = lay["EI"].shape[-1]
+    phi, Qb = tab["phi_q"], tab["Q_q"]
+    Q, n = phi.shape
+    dtype, device = h.dtype, h.device
+    act = lay["active"].detach()                                            # (B, S)
+    qmask = lay["qmask"].detach()
+    eyeS = torch.eye(S, dtype=dtype, device=device)
+    eyeN = torch.eye(N, dtype=dtype, device=device)
+    eye2 = torch.eye(2, dtype=dtype, device=device)
+    # u: (S, Q, 2) x (S, 2+N, n) pattern, same for every element.
+    Tu = torch.zeros(S, Q, 2, S, 2 + N, n, dtype=dtype, device=device)
+    Tu[:, :, :, :, :2, :] = torch.einsum("kl,de,ip->kidlep", eyeS, eye2, phi)
+    Tdp = torch.zeros(S, Q, N, S, 2 + N, n, dtype=dtype, device=device)
+    Tdp[:, :, :, :, 2:, :] = torch.einsum("kl,je,ip->kijlep", eyeS, eyeN, phi)
+    colmask = qmask[:, None, N:]
+
+    def dense(T, rows_per_node):
+        M = T.reshape(1, S * Q * rows_per_node, -1) * colmask
+        M = M * act[:, :, None, None].expand(B, S, Q, rows_per_node).reshape(B, -1, 1)
+        return torch.cat([torch.zeros(B, M.shape[1], N, dtype=dtype, device=device), M], -1)
+
+    Mu = dense(Tu, 2)
+    Mdp = dense(Tdp, N)
+    # psi: guide twist, full earlier sections, partial own section.
+    lower = torch.tril(torch.ones(S, S, dtype=dtype, device=device), -1)    # k' < k
+    e0 = torch.zeros(n, dtype=dtype, device=device)
+    e0[0] = 1.0
+    earlier = torch.einsum("kl,bl,je,p->bkjlep", lower, h, eyeN, e0)        # (B,S,N,S,N,n)
+    own = torch.einsum("kl,bk,je,ip->bkijlep", eyeS, 0.5 * h, eyeN, Qb)     # (B,S,Q,N,S,N,n)
+    Tpsi = torch.zeros(B, S, Q, N, S, 2 + N, n, dtype=dtype, device=device)
+    Tpsi[..., 2:, :] = own + earlier[:, :, None]
+    Mpsi = Tpsi.reshape(B, S * Q * N, -1) * colmask
+    wcols = (lay["D"].detach() * qmask[:, :N])[:, None, None, :] * eyeN      # (B, 1, N, N)
+    wcols = wcols.expand(B, S * Q, N, N).reshape(B, S * Q * N, N)
+    rows = act[:, :, None, None].expand(B, S, Q, N).reshape(B, -1, 1)
+    Mpsi = torch.cat([wcols, Mpsi], -1) * rows
+    psi_off = (lay["psi0"].detach()[:, None, None, :].expand(B, S, Q, N).reshape(B, -1)
+               * rows[..., 0])
+    zeros = torch.zeros(B, 1, dtype=dtype, device=device)
+    with torch.no_grad():
+        ustar = node_fields(torch.zeros(B, nq, dtype=dtype, device=device), lay,
+                            tab["xq"], phi, Qb)["ustar"]
     W = lay["W"].detach()                                                   # (B, S, Q)
     Pn = lay["present"].detach()[:, :, None, :].expand(B, S, Q, N)
     EIp = lay["EI"].detach()[:, None, None, :] * Pn
@@ -211,12 +242,11 @@ def build_maps(lay: dict[str, torch.Tensor], tab: dict[str, torch.Tensor],
     wu = (W * EIp.sum(-1))[..., None].expand(B, S, Q, 2).reshape(B, -1)
     wdp = (W[..., None] * GJp).reshape(B, -1)
     H_const = Mu.transpose(1, 2) @ (wu[..., None] * Mu) + Mdp.transpose(1, 2) @ (wdp[..., None] * Mdp)
-    qmask = lay["qmask"].detach()
     guide = torch.zeros(B, nq, dtype=dtype, device=device)
     guide[:, :N] = lay["GJ"].detach() * lay["D"].detach() * qmask[:, :N]
     H_const = H_const + torch.diag_embed(guide)
-    return {"Mu": Mu, "u0": u0, "Mpsi": Mpsi, "psi0": psi0, "Mdp": Mdp, "dp0": dp0,
-            "ustar": f["ustar"][:, 0].detach(), "W": W, "EIp": EIp, "GJp": GJp,
+    return {"Mu": Mu, "u0": zeros, "Mpsi": Mpsi, "psi0": psi_off, "Mdp": Mdp, "dp0": zeros,
+            "ustar": ustar.detach(), "W": W, "EIp": EIp, "GJp": GJp,
             "H_const": H_const, "guide": guide, "guide_const": lay["guide_const"].detach(),
             "shape": torch.tensor([S, Q, N])}
 

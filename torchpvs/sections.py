@@ -22,6 +22,7 @@ precurvature exactly (the paper's ``p_2 = 1``), so they carry no coordinates.
 
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import torch
@@ -55,6 +56,10 @@ class Discretization:
     n_magnus: int
 
     def tables(self, dtype: torch.dtype, device: torch.device) -> dict[str, torch.Tensor]:
+        """Quadrature nodes/weights and basis values (cached per dtype and device)."""
+        return _tables(self, dtype, torch.device(device))
+
+    def _build_tables(self, dtype: torch.dtype, device: torch.device) -> dict[str, torch.Tensor]:
         xq, wq = gauss_legendre(self.n_quad, dtype=dtype, device=device)
         phi_q, Q_q = legendre_basis(xq, self.n_basis)
         # Magnus sub-steps: n_magnus equal pieces of [-1, 1], two Gauss points each.
@@ -65,6 +70,12 @@ class Discretization:
         phi_m, Q_m = legendre_basis(xm, self.n_basis)
         return {"xq": xq, "wq": wq, "phi_q": phi_q, "Q_q": Q_q, "xm": xm,
                 "phi_m": phi_m, "Q_m": Q_m}
+
+
+@functools.lru_cache(maxsize=64)
+def _tables(disc: Discretization, dtype: torch.dtype, device: torch.device):
+    # Read-only constants: callers never write into them.
+    return disc._build_tables(dtype, device)
 
 
 def n_coordinates(n_tubes: int, n_basis: int) -> int:
