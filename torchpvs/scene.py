@@ -360,6 +360,10 @@ _Loader.add_implicit_resolver(
 )
 
 
+def _first_line(exc: Exception) -> str:
+    return str(exc).strip().splitlines()[0] if str(exc).strip() else type(exc).__name__
+
+
 def _yaml_load(text: str) -> Any:
     return yaml.load(text, Loader=_Loader)  # noqa: S506 - a SafeLoader subclass
 
@@ -383,7 +387,11 @@ def apply_overrides(data: dict[str, Any], overrides: Sequence[str]) -> dict[str,
         if "=" not in item:
             raise SceneError(f"--set {item!r}: expected KEY=VALUE")
         key, raw = item.split("=", 1)
-        value = _yaml_load(raw)
+        try:
+            value = _yaml_load(raw)
+        except yaml.YAMLError as exc:
+            raise SceneError(f"--set {item!r}: value is not valid YAML ({_first_line(exc)})") \
+                from None
         parts: list[str | int] = []
         for token in key.strip().split("."):
             m = re.fullmatch(r"([A-Za-z_][A-Za-z_0-9]*)((\[\d+\])*)", token)
