@@ -173,93 +173,83 @@ def potential(q: torch.Tensor, lay: dict[str, torch.Tensor], tab: dict[str, torc
 # ---------------------------------------------------------------------------------------------
 # Exact gradient and Hessian of the elastic energy without autograd.
 #
-# At every quadrature node the local fields z = (u, psi_j, psi_j') are *linear* in q (strains are
-# basis expansions, angles their exact integrals), so z = M q + z0 with maps M fixed for a given
-# layout. With the node density e(z) = sum_j 1/2 EI_j |u - Rz(psi_j) u*_j|^2
-# + 1/2 GJ_j (psi_j' - u*_jz)^2, the exact derivatives are sums over nodes of
-# M^T (de/dz) and M^T (d2e/dz2) M, where (Ru_j = Rz(psi_j) u*_j, J = [[0, -1], [1, 0]]):
-#   de/du = sum_j EI_j (u - Ru_j),      de/dpsi_j = -EI_j (Ru_j x u),   de/dpsi_j' = GJ_j (psi_j' - u*_jz)
-#   d2e/du2 = sum_j EI_j I,  d2e/du dpsi_j = -EI_j J Ru_j,  d2e/dpsi_j2 = EI_j u . Ru_j,  d2e/dpsi'2 = GJ_j
-# The u-u and psi'-psi' blocks do not depend on q and are assembled once per solve.
+# At every quadrature node (section k, node i) the local fields are *linear* in q:
+#   u_ki = sum_p phi_ip a_{k,:,p},   psi'_kij = sum_p phi_ip c_{k,j,p},
+#   psi_kij = psi0_j + b_kj . q + (h_k / 2) sum_p Q_ip c_{k,j,p}
+# with b_kj = d(psi_j at the start of section k)/dq (D_j on w_j, h_k' on c_{k',j,0}, k' < k).
+# With the node density e = sum_j 1/2 EI_j |u - Ru_j|^2 + 1/2 GJ_j (psi_j' - u*_jz)^2,
+# Ru_j = Rz(psi_j) u*_j and J = [[0, -1], [1, 0]]:
+#   de/du = sum_j EI_j (u - Ru_j),  de/dpsi_j = -EI_j (Ru_j x u),  de/dpsi_j' = GJ_j (psi_j' - u*_jz)
+#   d2e/du2 = sum_j EI_j I,  d2e/du dpsi_j = -EI_j J Ru_j,  d2e/dpsi_j2 = EI_j u . Ru_j,
+#   d2e/dpsi_j'2 = GJ_j.
+# Node sums are reduced per (section, tube) first and then placed as small blocks, so no dense
+# node-by-coordinate map is ever formed (memory traffic, not flops, bounds large batches). The
+# u-u and psi'-psi' blocks do not depend on q and are assembled once per solve.
 
-def build_maps(lay: dict[str, torch.Tensor], tab: dict[str, torch.Tensor],
-               nq: int) -> dict[str, torch.Tensor]:
-    """Linear maps ``q -> (u, psi, psi')`` at the energy nodes of active sections.
-
-    Rows are nodes ``(k, i)`` x components, columns the coordinates. With ``m = (2 + N) n`` and
-    section ``k`` starting at column ``N + k m``: ``u_d`` reads ``a_{k,d,:}`` through ``phi_i``,
-    ``psi_j'`` reads ``c_{k,j,:}`` through ``phi_i``, and ``psi_j`` = ``psi0_j + D_j w_j
-    + sum_{k'<k} h_k' c_{k',j,0} + (h_k / 2) Q_i . c_{k,j,:}`` (exact integral of the torsion).
-    """
+def angle_bases(lay: dict[str, torch.Tensor], nq: int) -> torch.Tensor:
+    """``b_kj = d(psi_j at the start of section k)/dq``: ``(B, S, N, nq)``, i.e. ``D_j`` on the
+    guide twist ``w_j`` and ``h_k'`` on the mean torsion ``c_{k',j,0}`` of every earlier section."""
     h = lay["h"].detach()
     B, S = h.shape
     N = lay["EI"].shape[-1]
-    phi, Qb = tab["phi_q"], tab["Q_q"]
-    Q, n = phi.shape
+    n = (nq - N) // (S * (2 + N))
     dtype, device = h.dtype, h.device
-    act = lay["active"].detach()                                            # (B, S)
     qmask = lay["qmask"].detach()
-    eyeS = torch.eye(S, dtype=dtype, device=device)
+    lower = torch.tril(torch.ones(S, S, dtype=dtype, device=device), -1)
     eyeN = torch.eye(N, dtype=dtype, device=device)
-    eye2 = torch.eye(2, dtype=dtype, device=device)
-    # u: (S, Q, 2) x (S, 2+N, n) pattern, same for every element.
-    Tu = torch.zeros(S, Q, 2, S, 2 + N, n, dtype=dtype, device=device)
-    Tu[:, :, :, :, :2, :] = torch.einsum("kl,de,ip->kidlep", eyeS, eye2, phi)
-    Tdp = torch.zeros(S, Q, N, S, 2 + N, n, dtype=dtype, device=device)
-    Tdp[:, :, :, :, 2:, :] = torch.einsum("kl,je,ip->kijlep", eyeS, eyeN, phi)
-    colmask = qmask[:, None, N:]
+    X = torch.zeros(B, S, N, S, 2 + N, n, dtype=dtype, device=device)
+    X[..., 2:, 0] = torch.einsum("kl,bl,je->bkjle", lower, h, eyeN)
+    w = (lay["D"].detach()[:, None, None, :] * eyeN).expand(B, S, N, N)
+    b = torch.cat([w, X.reshape(B, S, N, -1)], -1)
+    return b * qmask[:, None, None, :]
 
-    def dense(T, rows_per_node):
-        M = T.reshape(1, S * Q * rows_per_node, -1) * colmask
-        M = M * act[:, :, None, None].expand(B, S, Q, rows_per_node).reshape(B, -1, 1)
-        return torch.cat([torch.zeros(B, M.shape[1], N, dtype=dtype, device=device), M], -1)
 
-    Mu = dense(Tu, 2)
-    Mdp = dense(Tdp, N)
-    # psi: guide twist, full earlier sections, partial own section.
-    lower = torch.tril(torch.ones(S, S, dtype=dtype, device=device), -1)    # k' < k
-    e0 = torch.zeros(n, dtype=dtype, device=device)
-    e0[0] = 1.0
-    earlier = torch.einsum("kl,bl,je,p->bkjlep", lower, h, eyeN, e0)        # (B,S,N,S,N,n)
-    own = torch.einsum("kl,bk,je,ip->bkijlep", eyeS, 0.5 * h, eyeN, Qb)     # (B,S,Q,N,S,N,n)
-    Tpsi = torch.zeros(B, S, Q, N, S, 2 + N, n, dtype=dtype, device=device)
-    Tpsi[..., 2:, :] = own + earlier[:, :, None]
-    Mpsi = Tpsi.reshape(B, S * Q * N, -1) * colmask
-    wcols = (lay["D"].detach() * qmask[:, :N])[:, None, None, :] * eyeN      # (B, 1, N, N)
-    wcols = wcols.expand(B, S * Q, N, N).reshape(B, S * Q * N, N)
-    rows = act[:, :, None, None].expand(B, S, Q, N).reshape(B, -1, 1)
-    Mpsi = torch.cat([wcols, Mpsi], -1) * rows
-    psi_off = (lay["psi0"].detach()[:, None, None, :].expand(B, S, Q, N).reshape(B, -1)
-               * rows[..., 0])
-    zeros = torch.zeros(B, 1, dtype=dtype, device=device)
+def build_maps(lay: dict[str, torch.Tensor], tab: dict[str, torch.Tensor],
+               nq: int) -> dict[str, torch.Tensor]:
+    """Everything the fast energy/gradient/Hessian needs that does not change with ``q``."""
+    h = lay["h"].detach()
+    B, S = h.shape
+    N = lay["EI"].shape[-1]
+    phi = tab["phi_q"]
+    Q, n = phi.shape
+    C = 2 + N
+    dtype, device = h.dtype, h.device
+    qmask = lay["qmask"].detach()
     with torch.no_grad():
         ustar = node_fields(torch.zeros(B, nq, dtype=dtype, device=device), lay,
-                            tab["xq"], phi, Qb)["ustar"]
+                            tab["xq"], phi, tab["Q_q"])["ustar"]
     W = lay["W"].detach()                                                   # (B, S, Q)
     Pn = lay["present"].detach()[:, :, None, :].expand(B, S, Q, N)
     EIp = lay["EI"].detach()[:, None, None, :] * Pn
     GJp = lay["GJ"].detach()[:, None, None, :] * Pn
-    wu = (W * EIp.sum(-1))[..., None].expand(B, S, Q, 2).reshape(B, -1)
-    wdp = (W[..., None] * GJp).reshape(B, -1)
-    H_const = Mu.transpose(1, 2) @ (wu[..., None] * Mu) + Mdp.transpose(1, 2) @ (wdp[..., None] * Mdp)
+    eyeS = torch.eye(S, dtype=dtype, device=device)
+    eye2 = torch.eye(2, dtype=dtype, device=device)
+    eyeN = torch.eye(N, dtype=dtype, device=device)
+    A = torch.einsum("bsq,qp,qr->bspr", W * EIp.sum(-1), phi, phi)          # bending blocks
+    T = torch.einsum("bsqj,qp,qr->bsjpr", W[..., None] * GJp, phi, phi)     # torsion blocks
+    HX = torch.zeros(B, S, C, n, S, C, n, dtype=dtype, device=device)
+    HX[:, :, :2, :, :, :2, :] = torch.einsum("bkpr,kl,de->bkdpler", A, eyeS, eye2)
+    HX[:, :, 2:, :, :, 2:, :] = torch.einsum("bkjpr,kl,je->bkjpler", T, eyeS, eyeN)
+    mX = qmask[:, N:]
     guide = torch.zeros(B, nq, dtype=dtype, device=device)
     guide[:, :N] = lay["GJ"].detach() * lay["D"].detach() * qmask[:, :N]
-    H_const = H_const + torch.diag_embed(guide)
-    return {"Mu": Mu, "u0": zeros, "Mpsi": Mpsi, "psi0": psi_off, "Mdp": Mdp, "dp0": zeros,
-            "ustar": ustar.detach(), "W": W, "EIp": EIp, "GJp": GJp,
-            "H_const": H_const, "guide": guide, "guide_const": lay["guide_const"].detach(),
-            "shape": torch.tensor([S, Q, N])}
+    H_const = torch.diag_embed(guide)
+    H_const[:, N:, N:] = HX.reshape(B, S * C * n, S * C * n) * mX[:, :, None] * mX[:, None, :]
+    return {"ustar": ustar.detach(), "W": W, "EIp": EIp, "GJp": GJp, "H_const": H_const,
+            "guide": guide, "guide_const": lay["guide_const"].detach(), "h": h,
+            "qmask": qmask, "psi0": lay["psi0"].detach(), "bvec": angle_bases(lay, nq),
+            "phi": phi, "Qb": tab["Q_q"]}
 
 
 def _local(q: torch.Tensor, maps: dict[str, torch.Tensor]):
-    S, Q, N = (int(v) for v in maps["shape"])
-    B = q.shape[0]
-    u = (maps["Mu"] @ q[..., None])[..., 0] + maps["u0"]
-    psi = (maps["Mpsi"] @ q[..., None])[..., 0] + maps["psi0"]
-    dp = (maps["Mdp"] @ q[..., None])[..., 0] + maps["dp0"]
-    u = u.reshape(B, S, Q, 2)
-    psi = psi.reshape(B, S, Q, N)
-    dp = dp.reshape(B, S, Q, N)
+    bvec, phi, Qb = maps["bvec"], maps["phi"], maps["Qb"]
+    B, S, N, _ = bvec.shape
+    X = (q[:, N:] * maps["qmask"][:, N:]).reshape(B, S, 2 + N, -1)
+    u = torch.einsum("bsdp,qp->bsqd", X[:, :, :2], phi)
+    dp = torch.einsum("bsjp,qp->bsqj", X[:, :, 2:], phi)
+    base = maps["psi0"][:, None, :] + (bvec @ q[:, None, :, None].expand(B, S, -1, 1))[..., 0]
+    psi = base[:, :, None, :] + 0.5 * maps["h"][:, :, None, None] * torch.einsum(
+        "bsjp,qp->bsqj", X[:, :, 2:], Qb)
     us = maps["ustar"]
     cs, sn = torch.cos(psi), torch.sin(psi)
     Ru = torch.stack([cs * us[..., 0] - sn * us[..., 1], sn * us[..., 0] + cs * us[..., 1]], -1)
@@ -267,7 +257,7 @@ def _local(q: torch.Tensor, maps: dict[str, torch.Tensor]):
 
 
 def elastic_energy_maps(q: torch.Tensor, maps: dict[str, torch.Tensor]) -> torch.Tensor:
-    """Same value as :func:`elastic_energy`, through the precomputed maps (``q (B, nq)``)."""
+    """Same value as :func:`elastic_energy`, through the precomputed structure (``q (B, nq)``)."""
     u, _, dp, Ru, us = _local(q, maps)
     diff = u[..., None, :] - Ru
     dens = 0.5 * (maps["EIp"] * (diff**2).sum(-1) + maps["GJp"] * (dp - us[..., 2]) ** 2).sum(-1)
@@ -278,24 +268,55 @@ def elastic_energy_maps(q: torch.Tensor, maps: dict[str, torch.Tensor]) -> torch
 def elastic_grad_hess(q: torch.Tensor, maps: dict[str, torch.Tensor]):
     """Exact gradient ``(B, nq)`` and Hessian ``(B, nq, nq)`` of the elastic energy."""
     u, _, dp, Ru, us = _local(q, maps)
-    B = q.shape[0]
+    B, nq = q.shape
+    bvec, phi, Qb = maps["bvec"], maps["phi"], maps["Qb"]
+    _, S, N, _ = bvec.shape
+    n = phi.shape[-1]
+    C = 2 + N
+    dtype, device = q.dtype, q.device
+    qmaskX = maps["qmask"][:, N:].reshape(B, S, C, n)
     W = maps["W"][..., None]                                                # (B, S, Q, 1)
     EIw = W * maps["EIp"]
-    diff = u[..., None, :] - Ru                                             # (B, S, Q, N, 2)
+    diff = u[..., None, :] - Ru
     gu = (EIw[..., None] * diff).sum(-2)                                    # (B, S, Q, 2)
-    cross = Ru[..., 0] * u[..., None, 1] - Ru[..., 1] * u[..., None, 0]     # Ru x u (z comp.)
-    gpsi = -EIw * cross
+    cross = Ru[..., 0] * u[..., None, 1] - Ru[..., 1] * u[..., None, 0]
+    gpsi = -EIw * cross                                                     # (B, S, Q, N)
     gdp = W * maps["GJp"] * (dp - us[..., 2])
-    Mu, Mpsi, Mdp = maps["Mu"], maps["Mpsi"], maps["Mdp"]
-    grad = ((Mu.transpose(1, 2) @ gu.reshape(B, -1, 1)) + (Mpsi.transpose(1, 2) @ gpsi.reshape(B, -1, 1))
-            + (Mdp.transpose(1, 2) @ gdp.reshape(B, -1, 1)))[..., 0] + maps["guide"] * q
-    hpp = (EIw * (u[..., None, :] * Ru).sum(-1)).reshape(B, -1)            # d2e/dpsi2
-    JRu = torch.stack([-Ru[..., 1], Ru[..., 0]], -1)                        # J Ru
+    hh = 0.5 * maps["h"][:, :, None, None]
+    gX = torch.zeros(B, S, C, n, dtype=dtype, device=device)
+    gX[:, :, :2] = torch.einsum("bsqd,qp->bsdp", gu, phi)
+    gX[:, :, 2:] = torch.einsum("bsqj,qp->bsjp", gdp, phi) + hh * torch.einsum(
+        "bsqj,qp->bsjp", gpsi, Qb)
+    grad = (bvec * gpsi.sum(2)[..., None]).sum((1, 2)) + maps["guide"] * q
+    grad[:, N:] += (gX * qmaskX).reshape(B, -1)
+    # Angle terms of the Hessian, reduced over nodes per (section, tube).
+    hpp = EIw * (u[..., None, :] * Ru).sum(-1)                              # (B, S, Q, N)
+    alpha = hpp.sum(2)                                                      # (B, S, N)
+    beta = hh * torch.einsum("bsqj,qp->bsjp", hpp, Qb)                      # (B, S, N, n)
+    gamma = hh[..., None] ** 2 * torch.einsum("bsqj,qp,qr->bsjpr", hpp, Qb, Qb)
+    JRu = torch.stack([-Ru[..., 1], Ru[..., 0]], -1)
     hup = -EIw[..., None] * JRu                                             # (B, S, Q, N, 2)
-    nq = q.shape[-1]
-    S, Q, N = (int(v) for v in maps["shape"])
-    Mpsi4 = Mpsi.reshape(B, S, Q, N, nq)
-    Y = torch.einsum("bsqjd,bsqjn->bsqdn", hup, Mpsi4).reshape(B, -1, nq)
-    Hc = Mu.transpose(1, 2) @ Y
-    H = maps["H_const"] + Mpsi.transpose(1, 2) @ (hpp[..., None] * Mpsi) + Hc + Hc.transpose(1, 2)
-    return grad, H
+    mu = torch.einsum("bsqjd,qp->bsjdp", hup, phi)                          # (B, S, N, 2, n)
+    nu = hh[..., None, None] * torch.einsum("bsqjd,qp,qr->bsjdpr", hup, phi, Qb)
+    bflat = bvec.reshape(B, S * N, nq)
+    # b_kj-rows: alpha b b^T + b (beta at c_kj)^T + (mu at a_k) b^T, then symmetrized.
+    V = torch.zeros(B, S * N, nq, dtype=dtype, device=device)
+    Vx = V[:, :, N:].view(B, S, N, S, C, n)
+    idx = torch.arange(S, device=device)
+    jdx = torch.arange(N, device=device)
+    Vx[:, idx[:, None], jdx[None, :], idx[:, None], 2 + jdx[None, :], :] = beta
+    V = V + 0.5 * alpha.reshape(B, -1, 1) * bflat
+    R = torch.zeros(B, S, C, n, nq, dtype=dtype, device=device)
+    R[:, :, :2] = torch.einsum("bkjdp,bkjn->bkdpn", mu, bvec)
+    T = bflat.transpose(1, 2) @ V
+    T[:, N:, :] += (R * qmaskX[..., None]).reshape(B, -1, nq)
+    # Blocks within a section: gamma (c_kj, c_kj) and nu (a_k, c_kj).
+    HX = torch.zeros(B, S, C, n, S, C, n, dtype=dtype, device=device)
+    # (advanced indices separated by slices come first in the indexed shape)
+    # gamma is symmetric and counted twice by T + T^T, nu sits on one side only.
+    HX[:, idx[:, None], 2 + jdx[None, :], :, idx[:, None], 2 + jdx[None, :], :] = \
+        0.5 * gamma.permute(1, 2, 0, 3, 4)
+    HX[:, idx, :2, :, idx, 2:, :] = nu.permute(1, 0, 3, 4, 2, 5)
+    mX = qmaskX.reshape(B, -1)
+    T[:, N:, N:] += HX.reshape(B, S * C * n, S * C * n) * mX[:, :, None] * mX[:, None, :]
+    return grad, maps["H_const"] + T + T.transpose(1, 2)
