@@ -3,12 +3,14 @@
 Pipeline: scene -> sections -> bases/quadrature -> energy -> Newton solve -> outputs.
 """
 
+from .equilibrium import Equilibrium
+from .implicit import NearSingularStiffnessWarning
+from .layer import CTR
 from .scene import Actuation, Load, Scene, SceneError, Tube, builtin_scenes, load_scene
 from .solver import SolverError, SolverOptions, solve
-from .equilibrium import Equilibrium
 
 __all__ = [
     "Tube", "Actuation", "Load", "Scene", "SceneError", "load_scene", "builtin_scenes",
-    "SolverOptions", "SolverError", "solve", "Equilibrium",
+    "SolverOptions", "SolverError", "solve", "Equilibrium", "CTR", "NearSingularStiffnessWarning",
 ]
 __version__ = "0.1.0"

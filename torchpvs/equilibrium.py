@@ -72,7 +72,8 @@ class Equilibrium:
 
     # ------------------------------------------------------------------------------------------
     @classmethod
-    def _from_solution(cls, scene, tubes, res, opts, elapsed: float) -> Equilibrium:
+    def _from_solution(cls, scene, tubes, res, opts, elapsed: float,
+                       diff: dict | None = None) -> Equilibrium:
         q, lay, tab, H = res["q"], res["lay"], res["tab"], res["H"]
         B = q.shape[0]
         qmask = lay["qmask"]
@@ -102,7 +103,12 @@ class Equilibrium:
                                                    device=q.device))
         ctx = {"scene": scene, "tubes": tubes, "lay": lay, "tab": tab, "disc": res["disc"],
                "D": res["D"], "alpha": res["alpha"], "F": res["F"], "M": res["M"]}
-        return cls(q=q, tip_position=res["tip"], tip_rotation=res["R"],
+        tip, R = res["tip"], res["R"]
+        if diff is not None:  # differentiable versions of the same values (implicit backward)
+            q, tip, R, energy = diff["q"], diff["tip"], diff["R"], diff["energy"]
+            rel = _wrap(diff["rel_unwrapped"])
+            forces, torques = diff["forces"], diff["torques"]
+        return cls(q=q, tip_position=tip, tip_rotation=R,
                    relative_rotation_at_outer_tip=rel, energy=energy, actuation_forces=forces,
                    actuation_torques=torques, converged=conv, residual_norm=res["residual"],
                    iterations=res["iterations"], stable=stable, min_stiffness_eigenvalue=ev,
@@ -145,7 +151,8 @@ class Equilibrium:
             zero = torch.zeros_like(u[..., :1])
             tw = torch.cat([u, zero, zero, zero, torch.ones_like(zero)], -1)
             tw = tw.reshape(B, points, m, 2, 6)
-            steps = magnus4_step(tw[..., 0, :], tw[..., 1, :], (x / m)[..., None].expand(B, points, m))
+            hs = (x / m)[..., None].expand(B, points, m)
+            steps = magnus4_step(tw[..., 0, :], tw[..., 1, :], hs)
             g = torch.gather(poses, 1, k[..., None, None].expand(B, points, 4, 4))
             for i in range(m):
                 g = g @ steps[:, :, i]

@@ -179,7 +179,8 @@ def potential(q: torch.Tensor, lay: dict[str, torch.Tensor], tab: dict[str, torc
 # with b_kj = d(psi_j at the start of section k)/dq (D_j on w_j, h_k' on c_{k',j,0}, k' < k).
 # With the node density e = sum_j 1/2 EI_j |u - Ru_j|^2 + 1/2 GJ_j (psi_j' - u*_jz)^2,
 # Ru_j = Rz(psi_j) u*_j and J = [[0, -1], [1, 0]]:
-#   de/du = sum_j EI_j (u - Ru_j),  de/dpsi_j = -EI_j (Ru_j x u),  de/dpsi_j' = GJ_j (psi_j' - u*_jz)
+#   de/du = sum_j EI_j (u - Ru_j),  de/dpsi_j = -EI_j (Ru_j x u),
+#   de/dpsi_j' = GJ_j (psi_j' - u*_jz)
 #   d2e/du2 = sum_j EI_j I,  d2e/du dpsi_j = -EI_j J Ru_j,  d2e/dpsi_j2 = EI_j u . Ru_j,
 #   d2e/dpsi_j'2 = GJ_j.
 # Node sums are reduced per (section, tube) first and then placed as small blocks, so no dense

@@ -69,7 +69,15 @@ at the shooting solution. ``min_stiffness_eigenvalue`` is the smallest eigenvalu
 smallest eigenvalue of the continuous second-variation operator
 ``-d/ds (GJ d/ds) + f''(psi)`` (with the guide's Robin conditions), in N per rad^2 (J/m per
 rad^2), independent of the grid spacing. ``stable`` = that eigenvalue is positive. For loaded
-scenes (and non-converged solves) both are ``None``: the reduction does not apply.
+scenes (and non-converged solves) both are ``None``: the reduction does not apply (the tip
+load couples the bending to the position). With no tube beyond the orifice there are no
+torsional coordinates: ``stable = True`` and ``min_stiffness_eigenvalue = None``.
+
+Initial guess
+-------------
+The default guess is zero torsion. For opposed planar precurvatures (e.g. the paper's section
+III-B scene, ``alpha_2 = pi``) zero torsion *is* an equilibrium, the symmetric one, which is
+unstable there: pass ``initial`` (e.g. ``[0.1, -0.1]`` N m) to reach the stable ones.
 """
 
 from __future__ import annotations
@@ -164,7 +172,7 @@ class _Problem:
                 cuts.add(st)
         cuts_arr = np.array(sorted(cuts))
         self.sections: list[dict[str, Any]] = []
-        for a, b in zip(cuts_arr[:-1], cuts_arr[1:]):
+        for a, b in zip(cuts_arr[:-1], cuts_arr[1:], strict=True):
             if b - a <= 1e-14 * max(1.0, self.s_tip):
                 continue
             mid = 0.5 * (a + b)
@@ -191,7 +199,7 @@ class _Problem:
         m0 = np.zeros(self.N)
         na = len(self.active)
         m0[self.active] = y[:na] * self.m_ref
-        mb = y[na:na + 2] * self.m_ref if self.loaded else np.zeros(2)
+        mb = y[na:na + 2] * self.m_ref if (self.loaded and na) else np.zeros(2)
         return m0, mb
 
     def pack(self, m0_full: np.ndarray, mb: np.ndarray) -> np.ndarray:
@@ -208,10 +216,10 @@ class _Problem:
         loaded, F = self.loaded, self.F
         # precurvature: constant vectors where possible, polynomials otherwise
         const = all((not c) or all(len(ax) == 1 for ax in self.coef[j])
-                    for j, c in zip(P, curved))
+                    for j, c in zip(P, curved, strict=True))
         if const:
             U0 = np.array([[ax[0] for ax in self.coef[j]] if c else [0.0, 0.0, 0.0]
-                           for j, c in zip(P, curved)]).reshape(len(P), 3)
+                           for j, c in zip(P, curved, strict=True)]).reshape(len(P), 3)
 
             def ustar(s: float) -> np.ndarray:
                 return U0
@@ -220,7 +228,7 @@ class _Problem:
 
             def ustar(s: float) -> np.ndarray:
                 out = np.zeros((len(P), 3))
-                for i, (j, c) in enumerate(zip(P, curved)):
+                for i, (j, c) in enumerate(zip(P, curved, strict=True)):
                     if c:
                         t = s + D[j] - Ls[j]
                         out[i] = [npoly.polyval(t, ax) for ax in coef[j]]
@@ -279,7 +287,7 @@ class _Problem:
         if not hasattr(self, "_rhs"):
             self._rhs = [self._rhs_factory(sec) for sec in self.sections]
         scale = max(self.s_tip, 1e-12)
-        for sec, rhs in zip(self.sections, self._rhs):
+        for sec, rhs in zip(self.sections, self._rhs, strict=True):
             atol = np.full(y.shape, tol)
             atol[0:3] = tol * scale
             atol[12:14] = tol * self.m_ref
@@ -316,7 +324,7 @@ class _Problem:
 # ---------------------------------------------------------------------------------------------
 # Solution
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class StandardSolution:
     """Equilibrium of the standard model (numpy arrays; see the module docstring for the model).
 
@@ -327,7 +335,7 @@ class StandardSolution:
         relative_rotation_at_outer_tip: (N-1,) [rad] ``psi_j(min(l_j, l_1)) - psi_1(l_1)``,
             ``j = 2..N``, wrapped to (-pi, pi] (the paper's ``theta_2(L_1)``).
         actuation_forces: (N,) [N] ``dU*/dD_j`` (finite differences), ``None`` when not
-            computed (``compute_forces=False``).
+            computed (``compute_forces=False``) or undefined (not converged).
         actuation_torques: (N,) [N m] ``dU*/dalpha_j = -m_j(0)``.
         energy: ``U*`` [J] (elastic energy minus ``F . p_tip``).
         stable, min_stiffness_eigenvalue: see the module docstring; ``None`` when loaded, not
@@ -458,9 +466,15 @@ def _initial_guess(prob: _Problem, initial: Any) -> np.ndarray:
     return arr / prob.m_ref
 
 
+def _conv_tol(tol: float) -> float:
+    """Scaled residual norm below which a solve counts as converged."""
+    return min(max(1e2 * tol, 1e-10), 1e-6)
+
+
 def _shoot(prob: _Problem, x0: np.ndarray, tol: float) -> dict[str, Any]:
     """Solve the boundary value problem from scaled unknowns ``x0``."""
-    conv_tol = max(1e3 * tol, 1e-10)
+    conv_tol = _conv_tol(tol)
+    xtol = min(tol, 1e-10)
     nfev = 0
     big = 1e6
 
@@ -478,8 +492,8 @@ def _shoot(prob: _Problem, x0: np.ndarray, tol: float) -> dict[str, Any]:
         return dict(x=np.zeros(0), res=np.zeros(0), nfev=0, ok=True)
     best_x, best_r = x0, fun(x0)
     if np.linalg.norm(best_r) > conv_tol:
-        for method, opts in (("hybr", {"xtol": tol, "eps": tol, "maxfev": 200 * (prob.dofs + 1)}),
-                             ("lm", {"xtol": tol, "ftol": tol * 1e-2, "eps": tol,
+        for method, opts in (("hybr", {"xtol": xtol, "eps": tol, "maxfev": 200 * (prob.dofs + 1)}),
+                             ("lm", {"xtol": xtol, "ftol": xtol * 1e-2, "eps": tol,
                                      "maxiter": 200 * (prob.dofs + 1)})):
             try:
                 sol = root(fun, best_x, method=method, options=opts)
@@ -537,9 +551,13 @@ def _stability(prob: _Problem, sol_state, nodes_target: int = 1500) -> float:
     N = prob.N
     cuts = sorted({sec["a"] for sec in prob.sections} | {sec["b"] for sec in prob.sections})
     s_tip = prob.s_tip
+    # spacing: nodes_target over the robot, at least 400 nodes on the shortest exposed tube,
+    # never finer than s_tip / 20000
+    h_grid = max(min(s_tip / nodes_target, min(prob.l[j] for j in prob.active) / 400.0),
+                 s_tip / 20000.0)
     grid = [np.array([cuts[0]])]
-    for a, b in zip(cuts[:-1], cuts[1:]):
-        n = max(4, int(math.ceil(nodes_target * (b - a) / s_tip)))
+    for a, b in zip(cuts[:-1], cuts[1:], strict=True):
+        n = max(4, int(math.ceil((b - a) / h_grid)))
         grid.append(np.linspace(a, b, n + 1)[1:])
     s = np.concatenate(grid)
     n_nodes = s.size
@@ -622,7 +640,8 @@ def solve_standard(scene: Scene | Any, *, tol: float = 1e-10, initial: Any = Non
         scene: a :class:`~torchpvs.scene.Scene` (or anything :func:`load_scene` accepts).
         tol: relative/absolute tolerance of the ODE integration (``rtol``; ``atol`` scaled to
             lengths and moments) and of the root finder; the solve counts as converged when the
-            scaled residual norm is below ``max(1e3 tol, 1e-10)``. In (0, 1e-3].
+            scaled residual norm is below ``min(max(100 tol, 1e-10), 1e-6)``. In (0, 1e-3];
+            values below 1e-13 are used as 1e-13 (the integrator's floor).
         initial: ``None`` (zero torsion), a :class:`StandardSolution` (warm start, any scene
             with the same number of tubes) or an array of ``dofs`` shooting unknowns [N m].
         compute_forces: compute ``actuation_forces`` by finite differences (2 N extra solves);
@@ -667,7 +686,7 @@ def solve_standard(scene: Scene | Any, *, tol: float = 1e-10, initial: Any = Non
 
     converged = bool(res["ok"])
     forces = None
-    if compute_forces:
+    if compute_forces and converged:
         forces = _actuation_forces(scene, prob, (m0, res["mb"]), tol, res["energy"])
     stable = ev = None
     if compute_stability and converged and not prob.loaded and prob.active:

@@ -192,7 +192,8 @@ class Scene:
 
     def exposed_lengths(self) -> tuple[float, ...]:
         """Length of each tube beyond the orifice, ``max(0, L_j - D_j)`` [m]."""
-        return tuple(max(0.0, t.length - d) for t, d in zip(self.tubes, self.actuation.insertion))
+        pairs = zip(self.tubes, self.actuation.insertion, strict=True)
+        return tuple(max(0.0, t.length - d) for t, d in pairs)
 
     # -- (de)serialisation -------------------------------------------------------------------
     @classmethod
@@ -234,7 +235,7 @@ class Scene:
                 "name": t.name, "E": t.E, "G": t.G, "inner_diameter": t.inner_diameter,
                 "outer_diameter": t.outer_diameter, "straight_length": t.straight_length,
                 "curved_length": t.curved_length,
-                "precurvature": {ax: list(c) for ax, c in zip("xyz", t.precurvature)},
+                "precurvature": {ax: list(c) for ax, c in zip("xyz", t.precurvature, strict=True)},
             })
         return {
             "tubes": tubes,
@@ -298,7 +299,7 @@ def _validate(scene: Scene) -> None:
             raise SceneError(f"{w}: straight_length + curved_length must be > 0")
         if len(t.precurvature) != 3:
             raise SceneError(f"{w}.precurvature must have the axes x, y, z")
-        for ax, coeffs in zip("xyz", t.precurvature):
+        for ax, coeffs in zip("xyz", t.precurvature, strict=False):
             for k, c in enumerate(coeffs):
                 _finite(c, f"{w}.precurvature.{ax}[{k}]")
         if i > 0:

@@ -1,4 +1,4 @@
-"""Stage 2 — scene + actuation -> sections: where the free backbone is cut and what each piece holds.
+"""Stage 2 — scene + actuation -> sections: where the free backbone is cut, what each part holds.
 
 The backbone beyond the orifice, ``s in [0, s_tip]``, is cut at every tube end ``l_j = L_j - D_j``
 and every straight-to-curved transition ``tau_j = Ls_j - D_j`` that lies on the tube. With ``N``

@@ -14,13 +14,13 @@ from dataclasses import dataclass, replace
 import torch
 
 from .equilibrium import Equilibrium
+from .implicit import differentiable_outputs
 from .mechanics import (
     _skew_vee,
     build_maps,
     elastic_energy,
     elastic_energy_maps,
     elastic_grad_hess,
-    potential,
     tip_pose,
 )
 from .scene import Scene, load_scene
@@ -63,6 +63,11 @@ class SolverOptions:
         on_failure: ``"warn"`` (default), ``"raise"`` (:class:`SolverError`) or ``"ignore"`` when
             an element does not converge. Status is always in ``Equilibrium.converged``/``reason``.
         compute_forces: also compute ``actuation_forces``/``actuation_torques`` (one backward pass).
+        backward_ridge: Tikhonov shift added to the (Jacobi-scaled) stiffness in the adjoint
+            solve of the implicit backward; 0 = exact gradients. Use a small value (1e-6) to
+            regularize gradients at folds.
+        singular_tol: the implicit backward warns (:class:`NearSingularStiffnessWarning`) for
+            elements whose scaled stiffness has an eigenvalue below this in magnitude.
     """
 
     accuracy: float = 1e-5
@@ -77,11 +82,14 @@ class SolverOptions:
     device: torch.device | str | None = None
     on_failure: str = "warn"
     compute_forces: bool = True
+    backward_ridge: float = 0.0
+    singular_tol: float = 1e-10
 
     def __post_init__(self) -> None:
         if not (isinstance(self.accuracy, (int, float)) and self.accuracy > 0
                 and math.isfinite(self.accuracy)):
-            raise ValueError(f"options.accuracy must be a positive length [m], got {self.accuracy!r}")
+            raise ValueError(
+                f"options.accuracy must be a positive length [m], got {self.accuracy!r}")
         if self.order is not None and (not isinstance(self.order, int) or self.order < 0):
             raise ValueError(f"options.order must be an integer >= 0 or None, got {self.order!r}")
         if not isinstance(self.max_order, int) or self.max_order < 1:
@@ -99,6 +107,8 @@ class SolverOptions:
             raise ValueError(f"options.n_quad must be an integer >= 2 or None, got {self.n_quad!r}")
         if not isinstance(self.n_magnus, int) or self.n_magnus < 1:
             raise ValueError(f"options.n_magnus must be an integer >= 1, got {self.n_magnus!r}")
+        if not (self.backward_ridge >= 0 and math.isfinite(self.backward_ridge)):
+            raise ValueError(f"options.backward_ridge must be >= 0, got {self.backward_ridge!r}")
         if self.dtype not in (None, torch.float32, torch.float64):
             raise ValueError(f"options.dtype must be torch.float32, torch.float64 or None, "
                              f"got {self.dtype!r}")
@@ -191,9 +201,21 @@ def solve(scene: Scene | str, *, insertion=None, rotation=None, tip_force=None, 
             raise ValueError(f"{name} has batch size {t.shape[0]}, expected 1 or {B}")
     D, A, F, M = (t.expand(B, -1).contiguous() for t in (D, A, F, M))
     _check_actuation(D, scene)
-    tubes = tube_tensors(scene, dtype, device)
+    return _solve(scene, tube_tensors(scene, dtype, device), D, A, F, M, opts, initial)
 
+
+def _solve(scene: Scene, tubes: TubeTensors, D, A, F, M, opts: SolverOptions, initial):
+    """The solve proper, on canonical ``(B, ...)`` tensors; differentiable through the implicit
+    backward when any input requires grad."""
+    B = D.shape[0]
     t0 = time.perf_counter()
+    needs_grad = torch.is_grad_enabled() and any(
+        t.requires_grad for t in (D, A, F, M, tubes.EI, tubes.GJ, tubes.length, tubes.straight,
+                                  tubes.coef))
+    D_in, A_in, F_in, M_in, tubes_in = D, A, F, M, tubes
+    D, A, F, M = (t.detach() for t in (D, A, F, M))
+    tubes = TubeTensors(*(t.detach() for t in (tubes.EI, tubes.GJ, tubes.length,
+                                               tubes.straight, tubes.coef)))
     orders = [opts.order] if opts.order is not None else list(range(2, opts.max_order + 1))
     q_init = _initial_q(initial, B)
     prev = None
@@ -208,8 +230,14 @@ def solve(scene: Scene | str, *, insertion=None, rotation=None, tip_force=None, 
                 break
         prev = res
         q_init = res["q"]
+    diff = None
+    if needs_grad:
+        info = {"H": res["H"], "qmask": res["lay"]["qmask"], "ridge": opts.backward_ridge,
+                "singular_tol": opts.singular_tol, "loaded": res["loaded"], "disc": res["disc"],
+                "tab": res["tab"], "with_load": res["with_load"], "has_moment": res["has_moment"]}
+        diff = differentiable_outputs(res["q"], info, D_in, A_in, F_in, M_in, tubes_in)
     elapsed = time.perf_counter() - t0
-    eq = Equilibrium._from_solution(scene, tubes, res, opts, elapsed)
+    eq = Equilibrium._from_solution(scene, tubes, res, opts, elapsed, diff)
     failed = (~eq.converged).nonzero().flatten().tolist()
     if failed and opts.on_failure != "ignore":
         msg = (f"torchpvs.solve: {len(failed)} of {B} element(s) did not converge "
@@ -443,8 +471,8 @@ def _derivative_fn(tab, maps, with_load: bool, has_moment: bool):
 def _merit_fn(tab, maps, with_load: bool, has_moment: bool):
     def merit(q, lay, q_ref):
         with torch.no_grad():
-            U = elastic_energy_maps(q, maps) if maps is not None and q.shape[0] == maps["W"].shape[0] \
-                else elastic_energy(q, lay, tab)
+            same_batch = maps is not None and q.shape[0] == maps["W"].shape[0]
+            U = elastic_energy_maps(q, maps) if same_batch else elastic_energy(q, lay, tab)
             if with_load:
                 p, R, _ = tip_pose(q, lay, tab)
                 U = U - (lay["force"] * p).sum(-1)

@@ -1,0 +1,155 @@
+"""Stage 6 — implicit-function backward: gradients of an equilibrium without unrolling Newton.
+
+The equilibrium ``q*(theta)`` solves ``g(q*, theta) = dPi/dq = 0`` for the inputs
+``theta = (D, alpha, F, M, EI, GJ, L, Ls, coef)``. Differentiating the identity
+``g(q*(theta), theta) = 0`` gives ``H dq*/dtheta = -dg/dtheta`` with ``H = dg/dq`` the stiffness
+at the solution. For a loss ``l(q*)`` with ``v = dl/dq*`` the vector-Jacobian product is therefore
+
+    dl/dtheta = -lambda^T dg/dtheta,       H^T lambda = v                       (adjoint system)
+
+one linear solve with the (already factorizable) stiffness, and one reverse pass through the
+gradient ``g`` — never through the Newton iterations. ``lambda^T dg/dtheta`` is obtained with
+autograd as the gradient w.r.t. ``theta`` of the scalar ``lambda . g(q*, theta)``.
+
+Outputs that depend on ``theta`` directly as well (tip pose, energy, forces) are then recomputed
+from ``q*`` and ``theta`` with ordinary autograd, so every ``Equilibrium`` field is differentiable.
+"""
+
+from __future__ import annotations
+
+import warnings
+
+import torch
+
+from .mechanics import potential
+from .sections import TubeTensors, build_layout
+
+__all__ = ["ImplicitEquilibrium", "NearSingularStiffnessWarning"]
+
+
+class NearSingularStiffnessWarning(RuntimeWarning):
+    """The stiffness at an equilibrium is (nearly) singular: gradients there are unreliable."""
+
+
+class ImplicitEquilibrium(torch.autograd.Function):
+    """``q* = ImplicitEquilibrium.apply(q_star, ctx_dict, D, alpha, F, M, EI, GJ, L, Ls, coef)``.
+
+    ``q_star`` is the converged solution (detached), ``ctx_dict`` carries the layout choices,
+    quadrature tables and the stiffness ``H`` at the solution. The differentiable inputs are
+    passed one by one (never inside a container), as autograd requires.
+    """
+
+    @staticmethod
+    def forward(ctx, q_star, info, D, alpha, F, M, EI, GJ, L, Ls, coef):  # noqa: N805
+        ctx.info = info
+        ctx.save_for_backward(q_star, D, alpha, F, M, EI, GJ, L, Ls, coef)
+        return q_star.clone()
+
+    @staticmethod
+    def backward(ctx, grad_q):  # noqa: N805
+        if torch.is_grad_enabled():
+            # create_graph=True: a second derivative would need d(H^-1)/dtheta, which this
+            # backward does not provide; failing loudly beats a silently partial Hessian.
+            raise RuntimeError(
+                "torchpvs: second derivatives through an equilibrium (grad of grad, "
+                "create_graph=True) are not supported; differentiate once, or use finite "
+                "differences of first-order gradients")
+        return _backward(ctx, grad_q)
+
+
+def _backward(ctx, grad_q):
+    """The adjoint solve and the reverse pass through ``g`` (see the module docstring)."""
+    # Adjoint: H lambda = grad_q on the active coordinates (H is symmetric: the tangent
+    # of a potential; the tip-moment load stiffness is symmetrized as in the solve).
+    q_star, D, alpha, F, M, EI, GJ, L, Ls, coef = ctx.saved_tensors
+    info = ctx.info
+    H = info["H"]
+    qmask = info["qmask"]
+    ridge = info["ridge"]
+    scale = H.diagonal(dim1=-2, dim2=-1).abs().clamp(min=1e-300)
+    Hs = H / torch.sqrt(scale[:, :, None] * scale[:, None, :])
+    ev = torch.linalg.eigvalsh(Hs)
+    near = ev.abs().amin(-1) < info["singular_tol"]
+    if bool(near.any()):
+        warnings.warn(
+            f"torchpvs: stiffness nearly singular at {int(near.sum())} element(s) "
+            f"{near.nonzero().flatten().tolist()[:8]} (a fold/snap point): implicit gradients "
+            "there are unreliable; SolverOptions(backward_ridge=...) regularizes them.",
+            NearSingularStiffnessWarning, stacklevel=2)
+    eye = torch.eye(H.shape[-1], dtype=H.dtype, device=H.device)
+    A = Hs + ridge * eye
+    if info["has_moment"]:
+        # A dead tip moment is not conservative: the exact tangent adds the antisymmetric
+        # K_ab = 1/2 M . (theta_a x theta_b) = -1/2 J_theta^T [M]x J_theta (see mechanics).
+        Jt = _rotation_jacobian(q_star, info, D, alpha, F, M, EI, GJ, L, Ls, coef)
+        from .lie import hat
+        K = -0.5 * Jt.transpose(1, 2) @ hat(M) @ Jt
+        K = K * qmask[:, :, None] * qmask[:, None, :]
+        A = A + K / torch.sqrt(scale[:, :, None] * scale[:, None, :])
+    # Adjoint of the (possibly non-symmetric) tangent: K^T lambda = v.
+    A = A.transpose(1, 2)
+    lam = torch.linalg.solve(A, (grad_q * qmask / scale.sqrt())[..., None])[..., 0]
+    lam = lam / scale.sqrt() * qmask
+    needs = ctx.needs_input_grad[2:]
+    inputs = [t.detach().requires_grad_(bool(nd)) for t, nd in
+              zip((D, alpha, F, M, EI, GJ, L, Ls, coef), needs, strict=True)]
+    with torch.enable_grad():
+        q = q_star.detach().requires_grad_(True)
+        lay = build_layout(TubeTensors(*inputs[4:]), inputs[0], inputs[1], inputs[2],
+                           inputs[3], info["loaded"], info["disc"])
+        P = potential(q, lay, info["tab"], q.detach() if info["has_moment"] else None,
+                      info["with_load"])
+        (g,) = torch.autograd.grad(P.sum(), q, create_graph=True)
+        wanted = [t for t in inputs if t.requires_grad]
+        grads = torch.autograd.grad((g * lam).sum(), wanted, allow_unused=True) \
+            if wanted else []
+    it = iter(grads)
+    out = []
+    for t in inputs:
+        if t.requires_grad:
+            gt = next(it)
+            out.append(None if gt is None else -gt)
+        else:
+            out.append(None)
+    return (None, None, *out)
+
+
+def _rotation_jacobian(q_star, info, D, alpha, F, M, EI, GJ, L, Ls, coef) -> torch.Tensor:
+    """``J_theta (B, 3, nq)``: spatial angular velocity of the tip frame per coordinate."""
+    from .mechanics import _skew_vee, tip_pose
+
+    lay = build_layout(TubeTensors(EI, GJ, L, Ls, coef), D, alpha, F, M, info["loaded"],
+                       info["disc"])
+    tab = info["tab"]
+
+    def rotvec(q, lay_b, q0):
+        _, R, _ = tip_pose(q, lay_b, tab)
+        with torch.no_grad():
+            _, R0, _ = tip_pose(q0, lay_b, tab)
+        return _skew_vee(R @ R0.transpose(-1, -2))
+
+    q = q_star.detach()
+    lay = {k: v.detach() for k, v in lay.items()}
+    return torch.func.vmap(torch.func.jacrev(rotvec))(q, lay, q)
+
+
+def differentiable_outputs(q_star: torch.Tensor, info: dict, D, alpha, F, M,
+                           tubes: TubeTensors) -> dict[str, torch.Tensor]:
+    """Every output as a differentiable function of the inputs, through the implicit ``q*``."""
+    from .mechanics import node_fields, tip_pose
+
+    q = ImplicitEquilibrium.apply(q_star.detach(), info, D, alpha, F, M, tubes.EI, tubes.GJ,
+                                  tubes.length, tubes.straight, tubes.coef)
+    dD = torch.zeros_like(D, requires_grad=True)
+    dA = torch.zeros_like(alpha, requires_grad=True)
+    lay = build_layout(tubes, D + dD, alpha + dA, F, M, info["loaded"], info["disc"])
+    tab = info["tab"]
+    p, R, _ = tip_pose(q, lay, tab)
+    U = potential(q, lay, tab, q.detach() if info["has_moment"] else None, info["with_load"])
+    energy = potential(q, lay, tab, None, info["with_load"])
+    tau_D, tau_A = torch.autograd.grad(U.sum(), (dD, dA), create_graph=True)
+    f = node_fields(q, lay, tab["xq"], tab["phi_q"], tab["Q_q"])
+    psi_l1 = f["psi0"] + (f["inc"] * lay["before_l1"][..., None]).sum(-2)
+    rel = psi_l1[:, 1:] - psi_l1[:, :1]
+    return {"q": q, "tip": p, "R": R, "energy": energy, "forces": tau_D, "torques": tau_A,
+            "rel_unwrapped": rel}
