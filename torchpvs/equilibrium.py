@@ -9,7 +9,7 @@ from typing import Any
 import torch
 
 from .lie import magnus4_step
-from .mechanics import node_fields, potential, section_start_poses
+from .mechanics import node_fields, potential, section_start_poses, tip_pose
 from .sections import build_layout
 
 __all__ = ["Equilibrium"]
@@ -102,7 +102,8 @@ class Equilibrium:
         err = res.get("error_estimate", torch.full((B,), float("nan"), dtype=q.dtype,
                                                    device=q.device))
         ctx = {"scene": scene, "tubes": tubes, "lay": lay, "tab": tab, "disc": res["disc"],
-               "D": res["D"], "alpha": res["alpha"], "F": res["F"], "M": res["M"]}
+               "D": res["D"], "alpha": res["alpha"], "F": res["F"], "M": res["M"],
+               "implicit_info": res["implicit_info"], "options": opts}
         tip, R = res["tip"], res["R"]
         if diff is not None:  # differentiable versions of the same values (implicit backward)
             q, tip, R, energy = diff["q"], diff["tip"], diff["R"], diff["energy"]
@@ -158,6 +159,12 @@ class Equilibrium:
                 g = g @ steps[:, :, i]
         return g[..., :3, 3]
 
+    def jacobians(self):
+        """Actuator stiffness, tip Jacobian, force-control Jacobian and tip compliance
+        (:func:`torchpvs.jacobians.control_jacobians`)."""
+        from .jacobians import control_jacobians
+        return control_jacobians(self)
+
     # ------------------------------------------------------------------------------------------
     def as_contract(self, index: int = 0, backbone_points: int | None = None) -> dict[str, Any]:
         """The ``torchpvs solve --json`` object of conventions.md for batch element ``index``."""
@@ -202,6 +209,7 @@ def _actuation(scene, tubes, res):
     A = res["alpha"].detach().clone().requires_grad_(True)
     with torch.enable_grad():
         lay = build_layout(tubes, D, A, res["F"], res["M"], res["loaded"], res["disc"])
-        U = potential(q, lay, res["tab"], q if res["has_moment"] else None, res["with_load"])
+        R0 = tip_pose(q, lay, res["tab"])[1].detach() if res["has_moment"] else None
+        U = potential(q, lay, res["tab"], R0, res["with_load"])
         gD, gA = torch.autograd.grad(U.sum(), (D, A))
     return gD.detach(), gA.detach()

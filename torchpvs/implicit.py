@@ -21,7 +21,7 @@ import warnings
 
 import torch
 
-from .mechanics import potential
+from .mechanics import potential, tip_pose
 from .sections import TubeTensors, build_layout
 
 __all__ = ["ImplicitEquilibrium", "NearSingularStiffnessWarning"]
@@ -97,8 +97,9 @@ def _backward(ctx, grad_q):
         q = q_star.detach().requires_grad_(True)
         lay = build_layout(TubeTensors(*inputs[4:]), inputs[0], inputs[1], inputs[2],
                            inputs[3], info["loaded"], info["disc"])
-        P = potential(q, lay, info["tab"], q.detach() if info["has_moment"] else None,
-                      info["with_load"])
+        # Second slot: the moment's reference rotation stays attached to theta (not to q).
+        R0 = tip_pose(q.detach(), lay, info["tab"])[1] if info["has_moment"] else None
+        P = potential(q, lay, info["tab"], R0, info["with_load"])
         (g,) = torch.autograd.grad(P.sum(), q, create_graph=True)
         wanted = [t for t in inputs if t.requires_grad]
         grads = torch.autograd.grad((g * lam).sum(), wanted, allow_unused=True) \
@@ -116,7 +117,7 @@ def _backward(ctx, grad_q):
 
 def _rotation_jacobian(q_star, info, D, alpha, F, M, EI, GJ, L, Ls, coef) -> torch.Tensor:
     """``J_theta (B, 3, nq)``: spatial angular velocity of the tip frame per coordinate."""
-    from .mechanics import _skew_vee, tip_pose
+    from .mechanics import _skew_vee
 
     lay = build_layout(TubeTensors(EI, GJ, L, Ls, coef), D, alpha, F, M, info["loaded"],
                        info["disc"])
@@ -136,7 +137,7 @@ def _rotation_jacobian(q_star, info, D, alpha, F, M, EI, GJ, L, Ls, coef) -> tor
 def differentiable_outputs(q_star: torch.Tensor, info: dict, D, alpha, F, M,
                            tubes: TubeTensors) -> dict[str, torch.Tensor]:
     """Every output as a differentiable function of the inputs, through the implicit ``q*``."""
-    from .mechanics import node_fields, tip_pose
+    from .mechanics import node_fields
 
     q = ImplicitEquilibrium.apply(q_star.detach(), info, D, alpha, F, M, tubes.EI, tubes.GJ,
                                   tubes.length, tubes.straight, tubes.coef)
@@ -145,7 +146,12 @@ def differentiable_outputs(q_star: torch.Tensor, info: dict, D, alpha, F, M,
     lay = build_layout(tubes, D + dD, alpha + dA, F, M, info["loaded"], info["disc"])
     tab = info["tab"]
     p, R, _ = tip_pose(q, lay, tab)
-    U = potential(q, lay, tab, q.detach() if info["has_moment"] else None, info["with_load"])
+    R0 = None
+    if info["has_moment"]:
+        # Reference slot: same state, but not differentiated by the forces' d/d(dD, dA).
+        lay0 = build_layout(tubes, D, alpha, F, M, info["loaded"], info["disc"])
+        R0 = tip_pose(q, lay0, tab)[1]
+    U = potential(q, lay, tab, R0, info["with_load"])
     energy = potential(q, lay, tab, None, info["with_load"])
     tau_D, tau_A = torch.autograd.grad(U.sum(), (dD, dA), create_graph=True)
     f = node_fields(q, lay, tab["xq"], tab["phi_q"], tab["Q_q"])

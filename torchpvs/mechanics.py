@@ -149,24 +149,24 @@ def _skew_vee(A: torch.Tensor) -> torch.Tensor:
 
 
 def potential(q: torch.Tensor, lay: dict[str, torch.Tensor], tab: dict[str, torch.Tensor],
-              q_ref: torch.Tensor | None = None, with_load: bool = True) -> torch.Tensor:
+              ref_rotation: torch.Tensor | None = None, with_load: bool = True) -> torch.Tensor:
     """Total potential ``(...,)`` [J]: elastic energy minus the work of the tip load.
 
     A dead tip force has the potential ``-F . p_tip``. A dead moment is not conservative in 3D;
     its virtual work ``M . delta theta`` (spatial rotation) is represented by
-    ``M . vee(skew(R(q) R(q_ref)^T))``, whose gradient at ``q = q_ref`` is exactly ``J_theta^T M``
-    (so stationary points are the equilibria) and whose Hessian is the symmetric part of the load
-    stiffness.
+    ``M . vee(skew(R(q) R_ref^T))`` with ``R_ref`` the tip rotation at the same state, passed as
+    ``ref_rotation``: differentiated through ``R(q)`` only, its gradient is exactly
+    ``J_theta^T M``. Callers that need exact *second* derivatives keep ``R_ref`` attached to the
+    graph (a second slot, see :mod:`torchpvs.implicit`); the Newton tangent detaches it and so
+    uses the symmetric part of the load stiffness. ``ref_rotation=None`` ignores the moment.
     """
     U = elastic_energy(q, lay, tab)
     if not with_load:
         return U
     p, R, _ = tip_pose(q, lay, tab)
     work = (lay["force"] * p).sum(-1)
-    if q_ref is not None:
-        with torch.no_grad():
-            _, R0, _ = tip_pose(q_ref.detach(), lay, tab)
-        work = work + (lay["moment"] * _skew_vee(R @ R0.transpose(-1, -2))).sum(-1)
+    if ref_rotation is not None:
+        work = work + (lay["moment"] * _skew_vee(R @ ref_rotation.transpose(-1, -2))).sum(-1)
     return U - work
 
 

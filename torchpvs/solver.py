@@ -66,6 +66,9 @@ class SolverOptions:
         backward_ridge: Tikhonov shift added to the (Jacobi-scaled) stiffness in the adjoint
             solve of the implicit backward; 0 = exact gradients. Use a small value (1e-6) to
             regularize gradients at folds.
+        load_coordinates: give distal single-tube sections coordinates even without a tip
+            load (they are exact without; needed for the tip compliance at zero load and for
+            gradients w.r.t. a load that is zero).
         singular_tol: the implicit backward warns (:class:`NearSingularStiffnessWarning`) for
             elements whose scaled stiffness has an eigenvalue below this in magnitude.
     """
@@ -84,6 +87,7 @@ class SolverOptions:
     compute_forces: bool = True
     backward_ridge: float = 0.0
     singular_tol: float = 1e-10
+    load_coordinates: bool = False
 
     def __post_init__(self) -> None:
         if not (isinstance(self.accuracy, (int, float)) and self.accuracy > 0
@@ -231,10 +235,11 @@ def _solve(scene: Scene, tubes: TubeTensors, D, A, F, M, opts: SolverOptions, in
         prev = res
         q_init = res["q"]
     diff = None
+    info = {"H": res["H"], "qmask": res["lay"]["qmask"], "ridge": opts.backward_ridge,
+            "singular_tol": opts.singular_tol, "loaded": res["loaded"], "disc": res["disc"],
+            "tab": res["tab"], "with_load": res["with_load"], "has_moment": res["has_moment"]}
+    res["implicit_info"] = info
     if needs_grad:
-        info = {"H": res["H"], "qmask": res["lay"]["qmask"], "ridge": opts.backward_ridge,
-                "singular_tol": opts.singular_tol, "loaded": res["loaded"], "disc": res["disc"],
-                "tab": res["tab"], "with_load": res["with_load"], "has_moment": res["has_moment"]}
         diff = differentiable_outputs(res["q"], info, D_in, A_in, F_in, M_in, tubes_in)
     elapsed = time.perf_counter() - t0
     eq = Equilibrium._from_solution(scene, tubes, res, opts, elapsed, diff)
@@ -276,12 +281,12 @@ def _solve_order(scene, tubes, D, A, F, M, order, opts, q_init):
     N = scene.n_tubes
     B = D.shape[0]
     dtype, device = D.dtype, D.device
-    loaded = (F.abs().sum(-1) > 0) | (M.abs().sum(-1) > 0)
+    loaded = (F.abs().sum(-1) > 0) | (M.abs().sum(-1) > 0) | opts.load_coordinates
     lay = build_layout(tubes, D, A, F, M, loaded, disc)
     tab = disc.tables(dtype, device)
     nq = n_coordinates(N, disc.n_basis)
     with_load = bool(loaded.any())
-    has_moment = bool((M.abs().sum(-1) > 0).any())
+    has_moment = bool((M.abs().sum(-1) > 0).any()) or opts.load_coordinates
 
     if q_init is not None:
         n_from = (q_init.shape[-1] - N) // (2 * N * (2 + N))

@@ -1,0 +1,73 @@
+"""Control Jacobians against central finite differences of full solves (actuator stiffness,
+tip Jacobian, force-control Jacobian, tip compliance). All perturbations of one check are solved
+as one batch."""
+
+from __future__ import annotations
+
+import pytest
+import torch
+
+import torchpvs as tp
+
+SCENE = tp.load_scene("renda2021_fig3")
+OPTS = tp.SolverOptions(order=4, tol=1e-12)
+X0 = torch.tensor([0.09, 0.2085, 0.1, 1.2], dtype=torch.float64)   # away from the D1 kink
+
+
+def _solve(x, F, M, initial=None):
+    x = torch.atleast_2d(x)
+    return tp.solve(SCENE, insertion=x[:, :2], rotation=x[:, 2:], tip_force=F, tip_moment=M,
+                    options=OPTS, initial=initial)
+
+
+def _central(values: torch.Tensor, h: float) -> torch.Tensor:
+    """``values (2k, m)`` ordered +e_0, -e_0, +e_1, ... -> ``(m, k)`` central differences."""
+    return ((values[0::2] - values[1::2]) / (2 * h)).T
+
+
+@pytest.mark.parametrize("load", ["none", "force_and_moment"])
+def test_jacobians_match_finite_differences(load):
+    F = torch.tensor([0.02, 0.0, -0.01] if load != "none" else [0.0] * 3, dtype=torch.float64)
+    M = torch.tensor([0.0, 1e-3, 0.0] if load != "none" else [0.0] * 3, dtype=torch.float64)
+    eq = _solve(X0, F, M)
+    J = eq.jacobians()
+    h = 1e-6
+    steps = torch.zeros(8, 4, dtype=torch.float64)
+    for i in range(4):
+        steps[2 * i, i], steps[2 * i + 1, i] = h, -h
+    ex = _solve(X0 + steps, F, M)
+    tau = torch.cat([ex.actuation_forces, ex.actuation_torques], -1)
+    K_fd, P_fd = _central(tau, h), _central(ex.tip_position, h)
+    K = J.actuator_stiffness[0]
+    assert (K - K_fd).abs().max() <= 1e-6 * K_fd.abs().max()
+    assert (J.tip_jacobian[0, :3] - P_fd).abs().max() <= 1e-6 * P_fd.abs().max()
+    dw = torch.zeros(12, 6, dtype=torch.float64)
+    for i in range(6):
+        dw[2 * i, i], dw[2 * i + 1, i] = 1e-5, -1e-5
+    ew = _solve(X0.expand(12, 4), F + dw[:, :3], M + dw[:, 3:])
+    C_fd = _central(ew.tip_position, 1e-5)
+    assert (J.tip_compliance[0, :3] - C_fd).abs().max() <= 1e-6 * C_fd.abs().max()
+    if load == "none":
+        # Rotating all tubes together costs nothing; at X0 only straight material crosses the
+        # orifice (D1 < Ls1), so translating both tubes together costs nothing either.
+        for null in ([0.0, 0.0, 1.0, 1.0], [1.0, 1.0, 0.0, 0.0]):
+            v = torch.tensor(null, dtype=torch.float64)
+            assert (K @ v).abs().max() <= 1e-9 * K.abs().max()
+        assert int(J.force_rank[0]) <= 2
+        assert torch.allclose(K, K.T)
+    else:
+        assert not torch.allclose(K, K.T, atol=1e-6)  # a dead moment is non-conservative
+
+
+def test_force_jacobian_predicts_tip_motion_under_force_control():
+    """A small actuator-force change dtau = K dx (dx in the range of K, i.e. orthogonal to the
+    free modes) moves the tip by J_tau dtau, to first order."""
+    eq = _solve(X0, None, None)
+    J = eq.jacobians()
+    K = J.actuator_stiffness[0]
+    dx = K[:, 0] / K[:, 0].norm() * 1e-5
+    dtau = K @ dx
+    moved = _solve(X0 + dx, None, None)
+    pred = J.force_jacobian[0, :3] @ dtau
+    actual = moved.tip_position[0] - eq.tip_position[0]
+    assert (pred - actual).norm() <= 2e-2 * actual.norm()

@@ -1,0 +1,94 @@
+"""Control quantities at an equilibrium: actuator stiffness, tip Jacobians, tip compliance.
+
+With actuator coordinates ``x = (D_1..D_N, alpha_1..alpha_N)`` and generalized forces
+``tau(x) = dU*/dx`` (conventions.md), at an equilibrium ``q*(x)``:
+
+* actuator stiffness ``K_x = dtau/dx = U_xx - U_xq U_qq^-1 U_qx`` — the Schur complement of the
+  full Hessian: the stiffness the actuators feel. It is singular along the common rotation
+  ``(0, .., 0, 1, .., 1)`` (rotating every tube together costs no energy) when the tip is
+  unloaded, and non-symmetric under a dead tip moment (a non-conservative load).
+* tip Jacobian ``J_x = d(tip)/dx``, rows ``(p_x, p_y, p_z, omega_x, omega_y, omega_z)``:
+  position [m] and spatial angular velocity [rad] of the tip frame per unit actuation.
+* force-control Jacobian ``J_tau = d(tip)/dtau = J_x K_x^+``: how the tip moves per unit actuator
+  force/torque when every actuator is force-controlled (pseudo-inverse: the free common
+  rotation is a zero-stiffness mode; ``force_rank`` reports the numerical rank of ``K_x``).
+* tip compliance ``C = d(tip)/d(F, M)`` (6 x 6) under the current load at fixed actuation.
+
+All are exact derivatives of the discrete model (implicit-function theorem), computed by reverse
+passes through :mod:`torchpvs.implicit`, batched over the equilibrium's elements.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+
+from .implicit import differentiable_outputs
+from .mechanics import _skew_vee
+from .sections import TubeTensors
+
+__all__ = ["ControlJacobians", "control_jacobians"]
+
+
+@dataclass(frozen=True)
+class ControlJacobians:
+    """See the module docstring. Shapes: ``actuator_stiffness (B, 2N, 2N)``,
+    ``tip_jacobian (B, 6, 2N)``, ``force_jacobian (B, 6, 2N)``, ``tip_compliance (B, 6, 6)``,
+    ``force_rank (B,)``. Units follow ``x = (D [m], alpha [rad])``, ``tau = (N, N·m)``."""
+
+    actuator_stiffness: torch.Tensor
+    tip_jacobian: torch.Tensor
+    force_jacobian: torch.Tensor
+    tip_compliance: torch.Tensor
+    force_rank: torch.Tensor
+
+
+def _rows(outputs: torch.Tensor, inputs: tuple[torch.Tensor, ...]) -> list[torch.Tensor]:
+    """Per-element Jacobian rows: ``outputs (B, m)`` w.r.t. each input ``(B, k)`` -> list of
+    ``(B, m, k)``. Elements are independent, so one reverse pass per output column suffices."""
+    B, m = outputs.shape
+    cols: list[list[torch.Tensor]] = [[] for _ in inputs]
+    for i in range(m):
+        grads = torch.autograd.grad(outputs[:, i].sum(), inputs, retain_graph=True,
+                                    allow_unused=True)
+        for c, (g, x) in enumerate(zip(grads, inputs, strict=True)):
+            cols[c].append(torch.zeros_like(x) if g is None else g)
+    return [torch.stack(c, 1) for c in cols]
+
+
+def control_jacobians(eq, *, rank_tol: float = 1e-9) -> ControlJacobians:
+    """:class:`ControlJacobians` of an :class:`~torchpvs.Equilibrium` (all elements)."""
+    ctx = eq._ctx
+    if not ctx["implicit_info"]["with_load"]:
+        # The compliance needs the load term and coordinates on unloaded distal sections.
+        from dataclasses import replace
+
+        from .solver import _solve
+        opts = replace(ctx["options"], load_coordinates=True, order=eq.order)
+        eq = _solve(ctx["scene"], ctx["tubes"], ctx["D"], ctx["alpha"], ctx["F"], ctx["M"],
+                    opts, eq)
+        ctx = eq._ctx
+    info = ctx["implicit_info"]
+    tubes: TubeTensors = ctx["tubes"]
+    D = ctx["D"].detach().clone().requires_grad_(True)
+    A = ctx["alpha"].detach().clone().requires_grad_(True)
+    F = ctx["F"].detach().clone().requires_grad_(True)
+    M = ctx["M"].detach().clone().requires_grad_(True)
+    with torch.enable_grad():
+        out = differentiable_outputs(eq.q.detach(), info, D, A, F, M, tubes)
+        tau = torch.cat([out["forces"], out["torques"]], -1)                # (B, 2N)
+        R0 = out["R"].detach()
+        tip = torch.cat([out["tip"], _skew_vee(out["R"] @ R0.transpose(-1, -2))], -1)
+        KD, KA = _rows(tau, (D, A))
+        JD, JA, CF, CM = _rows(tip, (D, A, F, M))
+    K = torch.cat([KD, KA], -1).detach()
+    if not info["has_moment"]:
+        K = 0.5 * (K + K.transpose(1, 2))  # a Hessian of U*: symmetric up to rounding
+    J = torch.cat([JD, JA], -1).detach()
+    C = torch.cat([CF, CM], -1).detach()
+    sv = torch.linalg.svdvals(K)
+    rank = (sv > rank_tol * sv[:, :1]).sum(-1)
+    Kp = torch.linalg.pinv(K, rtol=rank_tol)
+    return ControlJacobians(actuator_stiffness=K, tip_jacobian=J, force_jacobian=J @ Kp,
+                            tip_compliance=C, force_rank=rank)
