@@ -21,7 +21,7 @@ import numpy as np
 import pytest
 import yaml
 
-from torchpvs.cli import CONTRACT_KEYS, main
+from torchpvs.cli import CONTRACT_KEYS, EXTENSION_KEYS, main
 from torchpvs.scene import load_scene
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -437,8 +437,11 @@ def test_pvs_solve_json(pvs_json):
     code, out, err = pvs_json
     assert code == 0, err
     obj = strict_json(out)
-    assert set(obj) == EXPECTED_KEYS | {"backbone"}
+    assert set(obj) == EXPECTED_KEYS | set(EXTENSION_KEYS) | {"backbone"}
     assert obj["model"] == "pvs" and obj["converged"] is True
+    # Fig. 3: D1 = Ls1, the outer tube's transition sits at the orifice (physics.md, kinks).
+    assert obj["force_kink"] == [True, False]
+    assert obj["actuation_forces_insertion"][0] < obj["actuation_forces"][0]
     assert len(obj["tip_position"]) == 3 and np.array(obj["tip_rotation"]).shape == (3, 3)
     assert len(obj["relative_rotation_at_outer_tip"]) == 1
     assert len(obj["actuation_forces"]) == 2 and len(obj["actuation_torques"]) == 2

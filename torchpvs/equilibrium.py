@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import Any
 
 import torch
@@ -31,7 +31,13 @@ class Equilibrium:
         relative_rotation_at_outer_tip: ``(B, N-1)`` [rad] ``theta_j(l_1) = psi_j - psi_1`` at the
             outer tube's distal end, wrapped to ``(-pi, pi]``.
         energy: ``(B,)`` [J] stored elastic energy minus the potential of the tip force.
-        actuation_forces: ``(B, N)`` [N] ``dU*/dD_j`` (positive = the actuator pulls back).
+        actuation_forces: ``(B, N)`` [N] ``dU*/dD_j`` along increasing ``D_j`` (retraction;
+            positive = the actuator pulls back), conventions.md.
+        actuation_forces_insertion: ``(B, N)`` [N] the derivative for decreasing ``D_j``
+            (insertion). Equal to ``actuation_forces`` where ``U*(D)`` is smooth; different where
+            it has a kink; NaN where insertion is impossible (``D_j = 0`` or ``D_j = D_{j-1}``).
+        force_kink: ``(B, N)`` bool, ``U*(D_j)`` has a kink here (a tube's base, straight-to-
+            curved transition or end at the orifice): the two one-sided forces differ.
         actuation_torques: ``(B, N)`` [N·m] ``dU*/dalpha_j``.
         converged: ``(B,)`` bool; ``reason``: per-element text ("converged" or why not).
         residual_norm: ``(B,)`` scaled residual (see ``SolverOptions.tol``).
@@ -39,8 +45,9 @@ class Equilibrium:
         stable: ``(B,)`` bool, the Hessian over the active coordinates is positive definite.
         min_stiffness_eigenvalue: ``(B,)`` [J·m²] smallest eigenvalue of that Hessian.
         dofs: ``(B,)`` number of active generalized coordinates.
-        order: basis degree used; ``error_estimate``: ``(B,)`` [m] tip change from the previous
-            order (automatic order selection), NaN when not estimated.
+        order: basis degree used; ``error_estimate``: ``(B,)`` [m] a posteriori tip error: the
+            tip change from the previous order (automatic order selection) plus the tip change
+            from doubling the Magnus steps (automatic ``n_magnus``); NaN when the order is fixed.
         solve_time_s: wall time of the solve [s].
     """
 
@@ -51,6 +58,8 @@ class Equilibrium:
     energy: torch.Tensor
     actuation_forces: torch.Tensor | None
     actuation_torques: torch.Tensor | None
+    actuation_forces_insertion: torch.Tensor | None
+    force_kink: torch.Tensor
     converged: torch.Tensor
     residual_norm: torch.Tensor
     iterations: torch.Tensor
@@ -90,9 +99,11 @@ class Equilibrium:
             stable = ev > tiny
             dofs = qmask.sum(-1).long()
             energy = potential(q, lay, tab, None, res["with_load"])
-        forces = torques = None
+        forces = torques = insert_side = None
+        kink = torch.zeros_like(res["D"], dtype=torch.bool)
         if opts.compute_forces:
             forces, torques = _actuation(scene, tubes, res)
+            forces, insert_side, kink = _one_sided_forces(scene, tubes, res, opts, forces)
         conv = res["converged"]
         reason = tuple(
             "converged" if bool(conv[b]) else
@@ -108,10 +119,13 @@ class Equilibrium:
         if diff is not None:  # differentiable versions of the same values (implicit backward)
             q, tip, R, energy = diff["q"], diff["tip"], diff["R"], diff["energy"]
             rel = _wrap(diff["rel_unwrapped"])
-            forces, torques = diff["forces"], diff["torques"]
+            torques = diff["torques"]
+            if forces is not None:  # keep the one-sided value (no gradient) at kinks
+                forces = torch.where(kink, forces, diff["forces"])
         return cls(q=q, tip_position=tip, tip_rotation=R,
                    relative_rotation_at_outer_tip=rel, energy=energy, actuation_forces=forces,
-                   actuation_torques=torques, converged=conv, residual_norm=res["residual"],
+                   actuation_torques=torques, actuation_forces_insertion=insert_side,
+                   force_kink=kink, converged=conv, residual_norm=res["residual"],
                    iterations=res["iterations"], stable=stable, min_stiffness_eigenvalue=ev,
                    dofs=dofs, order=res["order"], error_estimate=err, solve_time_s=elapsed,
                    reason=reason, _ctx=ctx)
@@ -187,6 +201,10 @@ class Equilibrium:
             else None,
             "actuation_torques": lst(self.actuation_torques[b])
             if self.actuation_torques is not None else None,
+            # Extensions of the contract: the insertion-side force where U*(D) has a kink.
+            "actuation_forces_insertion": lst(self.actuation_forces_insertion[b])
+            if self.actuation_forces_insertion is not None else None,
+            "force_kink": [bool(k) for k in self.force_kink[b]],
             "energy": flt(self.energy[b]),
             "stable": bool(self.stable[b]),
             "min_stiffness_eigenvalue": flt(self.min_stiffness_eigenvalue[b]),
@@ -213,3 +231,54 @@ def _actuation(scene, tubes, res):
         U = potential(q, lay, res["tab"], R0, res["with_load"])
         gD, gA = torch.autograd.grad(U.sum(), (D, A))
     return gD.detach(), gA.detach()
+
+
+def _one_sided_forces(scene, tubes, res, opts, forces, delta: float = 1e-7, tol: float = 1e-9):
+    """Where ``U*(D_j)`` has a kink — material of tube ``j`` changing kind exactly at the
+    orifice: its base (``D_j = 0``: the guide torsion appears), its straight-to-curved transition
+    (``D_j = Ls_j``: curvature enters the guide) or its end (``D_j = L_j``) — the derivative
+    differs for insertion and retraction. Each side is computed at an equilibrium ``delta`` away
+    on that side (where ``U*`` is smooth), warm-started; the error is ``O(delta)``.
+
+    Returns ``(retraction side, insertion side, kink mask)``, all ``(B, N)``.
+    """
+    from .solver import _solve
+
+    D = res["D"]
+    B, N = D.shape
+    L = tubes.length.expand(B, N)
+    Ls = tubes.straight.expand(B, N)
+    curved = tubes.coef.abs().sum((-1, -2)).expand(B, N) > 0
+    exposed = L - D > tol
+    kink = ((D <= tol) & exposed) | (((Ls - D).abs() <= tol) & curved & (L > Ls)) \
+        | ((L - D).abs() <= tol)
+    insertion = forces.clone()
+    prev = torch.cat([torch.zeros_like(D[:, :1]), D[:, :-1]], -1)
+    blocked = D - delta < prev
+    insertion[blocked] = float("nan")
+    if not bool(kink.any()):
+        return forces, insertion, kink
+    idx = kink.nonzero()
+    rows_b, rows_j = idx[:, 0], idx[:, 1]
+    step = torch.zeros(len(idx), N, dtype=D.dtype, device=D.device)
+    step[torch.arange(len(idx)), rows_j] = delta
+    sides = [("retract", step)]
+    can_insert = ~blocked[rows_b, rows_j]
+    if bool(can_insert.any()):
+        sides.append(("insert", -step[can_insert]))
+    sub_opts = replace(opts, order=res["order"], on_failure="ignore")
+    retract = forces.clone()
+    for name, st in sides:
+        sel = rows_b if name == "retract" else rows_b[can_insert]
+        sj = rows_j if name == "retract" else rows_j[can_insert]
+        Dn = D[sel] + st
+        # Moving a base past the next one's would break the ordering: move them together.
+        Dn = torch.cummax(Dn, -1).values
+        eq = _solve(scene, tubes, Dn, res["alpha"][sel], res["F"][sel], res["M"][sel],
+                    sub_opts, res["q"][sel])
+        vals = eq.actuation_forces[torch.arange(len(sel)), sj]
+        if name == "retract":
+            retract[sel, sj] = vals
+        else:
+            insertion[sel, sj] = vals
+    return retract, insertion, kink
