@@ -1,0 +1,160 @@
+"""Scenes and helpers shared by the hard-case suite (``tests/hard``) and the benchmarks
+(``benchmarks/speed_vs_error.py``, ``benchmarks/scaling.py``).
+
+Hard cases: shared/notes/physics.md, "Hard cases the solver must survive". Scenes of the paper:
+Renda, Messer, Rucker, Boyer, IEEE RA-L 2021 (sections III-B and III-C / Fig. 3, Table I).
+Frames, signs and the scene rules: shared/notes/conventions.md.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+
+import torchpvs
+from torchpvs.reference import solve_standard
+from torchpvs.scene import Actuation, Load, Scene, Tube
+
+MM = 1e-3
+E_NITINOL, G_NITINOL = 58.0e9, 21.5e9          # Table I of Renda et al. 2021
+D1_FIG3 = 93.5 * MM
+# Fig. 3 sweeps (physics.md, section III-C): D1 = 93.5 mm, alpha1 = 0.
+SWEEPS = {
+    "full": (208.5 * MM, list(range(0, 281, 20))),      # full overlap, alpha2 = 0..280 deg
+    "partial": (170.5 * MM, list(range(0, 201, 20))),   # partial overlap, alpha2 = 0..200 deg
+}
+
+
+def fig3(D2: float = 208.5 * MM, alpha2_deg: float = 80.0, D1: float = D1_FIG3) -> Scene:
+    """The paper's Fig. 3 robot at ``D = (D1, D2)``, ``alpha = (0, alpha2)``."""
+    return torchpvs.load_scene("renda2021_fig3").with_actuation(
+        insertion=[D1, D2], rotation=[0.0, math.radians(alpha2_deg)])
+
+
+def tip(eq, b: int = 0) -> np.ndarray:
+    return eq.tip_position[b].detach().double().cpu().numpy()
+
+
+def dist(a, b) -> float:
+    return float(np.linalg.norm(np.asarray(a, float) - np.asarray(b, float)))
+
+
+def two_tubes(k1: float, k2: float, *, E1: float = E_NITINOL, E2: float = E_NITINOL,
+              od1: float = 2.39 * MM, id1: float = 2.01 * MM, od2: float = 1.6 * MM,
+              id2: float = 0.0, Ls1: float = 0.0, Lc1: float = 0.1, Ls2: float = 0.0,
+              Lc2: float = 0.15, D=(0.0, 0.0), alpha=(0.0, 0.0), load: Load | None = None
+              ) -> Scene:
+    """A two-tube robot with constant precurvatures ``k1``, ``k2`` [1/m] about y."""
+    G1, G2 = E1 * G_NITINOL / E_NITINOL, E2 * G_NITINOL / E_NITINOL
+    tubes = (Tube(E1, G1, id1, od1, Ls1, Lc1, ((), (k1,), ()), "outer"),
+             Tube(E2, G2, id2, od2, Ls2, Lc2, ((), (k2,), ()), "inner"))
+    return Scene(tubes, Actuation(tuple(D), tuple(alpha)), load or Load())
+
+
+def random_scene(seed: int) -> Scene:
+    """The seeded random 2-/3-tube generator of tests/test_pvs_vs_reference.py (copied so that
+    the benchmarks do not import a test module): realistic nested nitinol robots, outer diameter
+    1.2-3 mm, lengths 50-250 mm, straight part 0-70 %, precurvature 0-25 1/m (30 %: linear term,
+    20 %: x component), ordered insertions with >= 5 mm exposed, rotations in (-pi, pi)."""
+    rng = np.random.default_rng(seed)
+    n = 2 if seed % 2 == 0 else 3
+    od = (rng.uniform(1.8, 3.0) if n == 3 else rng.uniform(1.2, 3.0)) * MM
+    tubes, L_prev = [], 0.0
+    for j in range(n):
+        wall = rng.uniform(0.08, 0.25) * MM
+        idj = od - 2 * wall
+        if j == n - 1 and rng.random() < 0.4:
+            idj = 0.0
+        L = rng.uniform(50, 180) * MM if j == 0 else rng.uniform(min(L_prev + 10 * MM, 0.25),
+                                                                  0.25)
+        straight = rng.uniform(0.0, 0.7) * L
+        curved = L - straight
+        k0 = rng.uniform(0.0, 25.0)
+        y = [k0]
+        x = []
+        if rng.random() < 0.3:
+            y.append(rng.uniform(-1, 1) * k0 / curved)
+        if rng.random() < 0.2:
+            x = [rng.uniform(-5, 5)]
+        tubes.append(Tube(E_NITINOL, G_NITINOL, idj, od, straight, curved,
+                          (tuple(x), tuple(y), ()), f"tube{j + 1}"))
+        L_prev = L
+        od = idj - rng.uniform(0.03, 0.1) * MM
+    D, lo = [], 0.0
+    for t in tubes:
+        d = lo if rng.random() < 0.1 else rng.uniform(lo, t.length - 5 * MM)
+        D.append(float(d))
+        lo = d
+    rot = [float(v) for v in rng.uniform(-math.pi, math.pi, n)]
+    return Scene(tuple(tubes), Actuation(tuple(D), tuple(rot)))
+
+
+def nested_scene(n_tubes: int, seed: int = 0, kappa_max: float = 20.0) -> Scene:
+    """A valid ``n_tubes``-tube robot (2..8) for scaling runs: outermost OD 4 mm, walls 0.1-0.15
+    mm, clearances 0.03-0.05 mm (innermost solid), each tube 20-30 mm longer than the one around
+    it, straight part 40-60 %, precurvature 5-``kappa_max`` 1/m, insertions ordered with each
+    tube's precurved part partly exposed (the telescoping layout of a real robot)."""
+    rng = np.random.default_rng(1000 + seed)
+    od, L = 4.0 * MM, rng.uniform(90, 110) * MM
+    tubes = []
+    for j in range(n_tubes):
+        wall = rng.uniform(0.10, 0.15) * MM
+        idj = 0.0 if j == n_tubes - 1 else od - 2 * wall
+        straight = rng.uniform(0.4, 0.6) * L
+        tubes.append(Tube(E_NITINOL, G_NITINOL, idj, od, straight, L - straight,
+                          ((), (float(rng.uniform(5.0, kappa_max)),), ()), f"tube{j + 1}"))
+        od = idj - rng.uniform(0.03, 0.05) * MM
+        L += rng.uniform(20, 30) * MM
+    # exposed length of tube j: about 40 % of its curved part beyond the previous tube's tip
+    D, lo, tip_prev = [], 0.0, 0.0
+    for t in tubes:
+        exposed = tip_prev + rng.uniform(0.3, 0.5) * t.curved_length
+        d = max(lo, t.length - exposed)
+        D.append(float(d))
+        lo, tip_prev = d, t.length - d
+    rot = [float(v) for v in rng.uniform(-math.pi, math.pi, n_tubes)]
+    return Scene(tuple(tubes), Actuation(tuple(D), tuple(rot)))
+
+
+def matched_reference(scene: Scene, pvs, tol: float = 1e-10, seed: int = 0, max_mm: float = 1.0,
+                      **kw):
+    """The reference equilibrium on PVS's branch (tip within ``max_mm``), or ``None``.
+
+    Guesses: zero torsion (the reference's default), the orifice torsion of the PVS answer
+    (``m_j(0) = -tau_alpha_j``, needs ``compute_forces``) and 4 random perturbations. A guess
+    only: the reference still converges on its own equations to its own tolerance."""
+    p = tip(pvs)
+
+    def ok(r):
+        return r.converged and dist(r.tip_position, p) < max_mm * MM
+
+    r = solve_standard(scene, tol=tol, **kw)
+    if ok(r):
+        return r
+    guesses = []
+    if pvs.actuation_torques is not None:
+        guesses.append(-pvs.actuation_torques[0].detach().double().numpy())
+    rng = np.random.default_rng(1000 + seed)
+    base = r.y0 if r.converged else np.zeros(r.dofs)
+    guesses += [base + 0.1 * rng.standard_normal(r.dofs) for _ in range(4)]
+    for g in guesses:
+        if len(g) != r.dofs:
+            continue
+        r2 = solve_standard(scene, tol=tol, initial=g, **kw)
+        if ok(r2):
+            return r2
+    return None
+
+
+def one_thread():
+    """Context manager: one torch thread (tiny solves spin-wait badly on a busy 2-core box)."""
+    class _Ctx:
+        def __enter__(self):
+            self.n = torch.get_num_threads()
+            torch.set_num_threads(1)
+
+        def __exit__(self, *exc):
+            torch.set_num_threads(self.n)
+    return _Ctx()
