@@ -3,6 +3,7 @@
 Pipeline: scene -> sections -> bases/quadrature -> energy -> Newton solve -> outputs.
 """
 
+from .continuation import ActuationPath, Continuation, FoldEvent, continuation
 from .equilibrium import Equilibrium
 from .implicit import NearSingularStiffnessWarning
 from .layer import CTR
@@ -12,5 +13,6 @@ from .solver import SolverError, SolverOptions, solve
 __all__ = [
     "Tube", "Actuation", "Load", "Scene", "SceneError", "load_scene", "builtin_scenes",
     "SolverOptions", "SolverError", "solve", "Equilibrium", "CTR", "NearSingularStiffnessWarning",
+    "continuation", "ActuationPath", "Continuation", "FoldEvent",
 ]
 __version__ = "0.1.0"
