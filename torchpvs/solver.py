@@ -31,6 +31,7 @@ __all__ = ["SolverOptions", "SolverError", "solve", "tube_tensors"]
 _METHODS = ("minimize", "root")
 _MAGNUS_START, _MAGNUS_MAX = 8, 256
 _ON_FAILURE = ("warn", "raise", "ignore")
+_FORCE_MODELS = ("energy", "paper")
 
 
 class SolverError(RuntimeError):
@@ -67,6 +68,14 @@ class SolverOptions:
         on_failure: ``"warn"`` (default), ``"raise"`` (:class:`SolverError`) or ``"ignore"`` when
             an element does not converge. Status is always in ``Equilibrium.converged``/``reason``.
         compute_forces: also compute ``actuation_forces``/``actuation_torques`` (one backward pass).
+        force_model: ``"energy"`` (default): ``tau = dU*/d(D, alpha)``, the energy-consistent
+            forces of conventions.md (they include the configurational force of precurved
+            material entering or leaving the guide); ``"paper"``: the projection of the paper's
+            eq. (41) (Renda et al. 2021), which omits the guide's stored bending energy — for
+            reproducing the paper's Table II (docs/actuation-forces.md). Defined as the paper
+            defines it: two tubes (or one), no tip load, no straight-to-curved transition
+            beyond the orifice, the outer tube ending before the inner one; other scenes raise
+            ``ValueError``. Its forces/torques carry no gradient and no one-sided kink values.
         backward_ridge: Tikhonov shift added to the (Jacobi-scaled) stiffness in the adjoint
             solve of the implicit backward; 0 = exact gradients. Use a small value (1e-6) to
             regularize gradients at folds.
@@ -89,6 +98,7 @@ class SolverOptions:
     device: torch.device | str | None = None
     on_failure: str = "warn"
     compute_forces: bool = True
+    force_model: str = "energy"
     backward_ridge: float = 0.0
     singular_tol: float = 1e-10
     load_coordinates: bool = False
@@ -104,6 +114,9 @@ class SolverOptions:
             raise ValueError(f"options.max_order must be an integer >= 1, got {self.max_order!r}")
         if self.method not in _METHODS:
             raise ValueError(f"options.method must be one of {_METHODS}, got {self.method!r}")
+        if self.force_model not in _FORCE_MODELS:
+            raise ValueError(f"options.force_model must be one of {_FORCE_MODELS}, "
+                             f"got {self.force_model!r}")
         if self.on_failure not in _ON_FAILURE:
             raise ValueError(f"options.on_failure must be one of {_ON_FAILURE}, "
                              f"got {self.on_failure!r}")
