@@ -233,7 +233,7 @@ def continuation(scene: Scene | str, path: Any, *, options: SolverOptions | None
         max_tip_jump = 0.02 * max(t.length for t in scene.tubes)
     if not (max_tip_jump > 0):
         raise ValueError(f"max_tip_jump must be > 0 [m], got {max_tip_jump!r}")
-    quiet = replace(opts, on_failure="ignore", compute_forces=False)
+    quiet = replace(opts, on_failure="ignore")
     n_solves = 0
 
     def at(s: float, init, o: SolverOptions) -> Equilibrium:
@@ -314,11 +314,9 @@ def continuation(scene: Scene | str, path: Any, *, options: SolverOptions | None
                 good = good and bool(e.stable[0])
             if good:
                 lo, eq_lo = mid, e
+                record(lo, eq_lo)            # the approach to the fold, step by step
             else:
                 hi = mid
-        eq_lo = at(lo, eq_lo, opts)          # with forces, for the record
-        if lo != s:
-            record(lo, eq_lo)
         after = at(hi, eq_lo, replace(opts, method="minimize"))
         if not bool(after.converged[0]):
             raise RuntimeError(f"continuation: the snap at s = {hi:.6g} found no converged "
