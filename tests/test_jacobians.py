@@ -4,6 +4,7 @@ as one batch."""
 
 from __future__ import annotations
 
+import numpy as np
 import pytest
 import torch
 
@@ -71,3 +72,28 @@ def test_force_jacobian_predicts_tip_motion_under_force_control():
     pred = J.force_jacobian[0, :3] @ dtau
     actual = moved.tip_position[0] - eq.tip_position[0]
     assert (pred - actual).norm() <= 2e-2 * actual.norm()
+
+
+def test_actuator_stiffness_fast_path_matches_control_jacobians():
+    """``actuator_stiffness`` (no re-solve for load coordinates) equals the Schur complement
+    from ``control_jacobians`` and central differences of the actuation forces."""
+    from torchpvs.jacobians import actuator_stiffness
+
+    sc = tp.load_scene("renda2021_fig3")
+    D = torch.tensor([[0.06, 0.15], [0.02, 0.2]], dtype=torch.float64)
+    A = torch.tensor([[0.0, 1.0], [0.3, -2.0]], dtype=torch.float64)
+    eq = tp.solve(sc, insertion=D, rotation=A)
+    K = actuator_stiffness(eq)
+    np.testing.assert_allclose(K.numpy(), eq.jacobians().actuator_stiffness.numpy(),
+                               rtol=1e-7, atol=1e-9)
+    e = 1e-6
+    x = torch.cat([D, A], -1)
+    for c in range(4):
+        dx = torch.zeros_like(x)
+        dx[:, c] = e
+        gp = tp.solve(sc, insertion=(x + dx)[:, :2], rotation=(x + dx)[:, 2:], initial=eq)
+        gm = tp.solve(sc, insertion=(x - dx)[:, :2], rotation=(x - dx)[:, 2:], initial=eq)
+        fd = (torch.cat([gp.actuation_forces, gp.actuation_torques], -1)
+              - torch.cat([gm.actuation_forces, gm.actuation_torques], -1)) / (2 * e)
+        np.testing.assert_allclose(K[:, :, c].numpy(), fd.numpy(), rtol=1e-4,
+                                   atol=1e-6 * float(K.abs().max()))

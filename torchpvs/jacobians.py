@@ -28,7 +28,7 @@ from .implicit import differentiable_outputs
 from .mechanics import _skew_vee
 from .sections import TubeTensors
 
-__all__ = ["ControlJacobians", "control_jacobians"]
+__all__ = ["ControlJacobians", "actuator_stiffness", "control_jacobians"]
 
 
 @dataclass(frozen=True)
@@ -55,6 +55,26 @@ def _rows(outputs: torch.Tensor, inputs: tuple[torch.Tensor, ...]) -> list[torch
         for c, (g, x) in enumerate(zip(grads, inputs, strict=True)):
             cols[c].append(torch.zeros_like(x) if g is None else g)
     return [torch.stack(c, 1) for c in cols]
+
+
+def actuator_stiffness(eq) -> torch.Tensor:
+    """``K_x = dtau/dx`` ``(B, 2N, 2N)`` [N/m, N, N·m] at an :class:`~torchpvs.Equilibrium` —
+    the first block of :func:`control_jacobians` alone, without its re-solve for load
+    coordinates (which only the tip compliance needs): ``2N`` reverse passes through the implicit
+    backward. The cheap path for time stepping (torchpvs environments)."""
+    ctx = eq._ctx
+    info = ctx["implicit_info"]
+    D = ctx["D"].detach().clone().requires_grad_(True)
+    A = ctx["alpha"].detach().clone().requires_grad_(True)
+    with torch.enable_grad():
+        out = differentiable_outputs(eq.q.detach(), info, D, A, ctx["F"], ctx["M"],
+                                     ctx["tubes"])
+        tau = torch.cat([out["forces"], out["torques"]], -1)
+        KD, KA = _rows(tau, (D, A))
+    K = torch.cat([KD, KA], -1).detach()
+    if not info["has_moment"]:
+        K = 0.5 * (K + K.transpose(1, 2))
+    return K
 
 
 def control_jacobians(eq, *, rank_tol: float = 1e-9) -> ControlJacobians:

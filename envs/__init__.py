@@ -1,0 +1,32 @@
+"""Gymnasium environments for torque-controlled concentric tube robots (torchpvs physics).
+
+Importing this package registers:
+
+* ``torchpvs/CTRReachForce-v0`` — actions are actuator forces and torques (``Box(-1, 1, (2N,))``
+  scaled by the robot's measured force/torque scales), overdamped carriages;
+* ``torchpvs/CTRReachJoint-v0`` — the same robot with joint-increment actions (at most 1 mm and
+  5 deg per step), the convention of the CTR reinforcement-learning literature;
+
+both goal-conditioned (Dict observations, ``compute_reward`` for HER), 100 steps per episode.
+``envs.CTRReachVecEnv`` is the natively batched SB3 ``VecEnv``.
+"""
+
+from gymnasium.envs.registration import register, registry
+
+from .dynamics import CarriageModel, RobotBatch
+from .reach_env import CTRReachEnv
+from .robots import ROBOTS, Robot, fig3_two_tube, make_robot, rvim_three_tube
+from .task import ReachConfig
+from .vec_env import CTRReachVecEnv
+
+__all__ = ["CTRReachEnv", "CTRReachVecEnv", "CarriageModel", "ReachConfig", "Robot",
+           "RobotBatch", "ROBOTS", "make_robot", "fig3_two_tube", "rvim_three_tube",
+           "ENV_IDS"]
+
+MAX_EPISODE_STEPS = 100
+ENV_IDS = {"torchpvs/CTRReachForce-v0": "force", "torchpvs/CTRReachJoint-v0": "joint"}
+
+for _id, _control in ENV_IDS.items():
+    if _id not in registry:
+        register(id=_id, entry_point="envs.reach_env:CTRReachEnv",
+                 max_episode_steps=MAX_EPISODE_STEPS, kwargs={"control": _control})

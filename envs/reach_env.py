@@ -1,0 +1,140 @@
+"""Single-robot Gymnasium face of the reaching task (goal-conditioned, Dict observations).
+
+``gymnasium.make("torchpvs/CTRReachForce-v0")`` — actions are actuator forces and torques;
+``gymnasium.make("torchpvs/CTRReachJoint-v0")`` — the same robot with joint increments.
+See :mod:`envs.task` for the observation layout and :mod:`envs.dynamics` for the physics.
+"""
+
+from __future__ import annotations
+
+from typing import Any
+
+import gymnasium as gym
+import numpy as np
+
+from torchpvs import Scene
+
+from .dynamics import CarriageModel
+from .robots import Robot, make_robot
+from .task import ReachBatch, ReachConfig, compute_reward
+
+__all__ = ["CTRReachEnv"]
+
+
+class CTRReachEnv(gym.Env):
+    """Reach a goal with the tip of a concentric tube robot.
+
+    Args:
+        robot: preset name (``"fig3_two_tube"`` default, ``"rvim_three_tube"``), a
+            :class:`~envs.robots.Robot`, a :class:`~torchpvs.Scene` or a scene file path.
+        control: ``"force"`` or ``"joint"`` (see :class:`~envs.task.ReachConfig`).
+        carriage: a :class:`~envs.dynamics.CarriageModel` or a dict of its fields
+            (e.g. ``{"kind": "second_order"}``).
+        render_mode: ``None``, ``"rgb_array"`` or ``"human"``.
+        **task: any :class:`~envs.task.ReachConfig` field (``reward``, ``tolerance``,
+            ``snap_mode``, ...).
+
+    ``info`` of every step holds ``is_success``, ``distance`` [m], ``snapped``,
+    ``solver_failure``, ``tip_jump`` [m], ``substeps``, ``tau`` (the applied forces/torques
+    [N, N·m]), ``effort`` [N²s], ``saturated`` (fraction of saturated action components),
+    ``tip_speed`` [m/s] and ``at_limit``.
+    """
+
+    metadata = {"render_modes": ["rgb_array", "human"], "render_fps": 10}
+
+    def __init__(self, robot: str | Robot | Scene = "fig3_two_tube", control: str = "force",
+                 carriage: CarriageModel | dict | None = None, render_mode: str | None = None,
+                 **task: Any):
+        self.robot = make_robot(robot)
+        if isinstance(carriage, dict):
+            carriage = CarriageModel(**carriage)
+        self.carriage = carriage or CarriageModel()
+        self.config = ReachConfig(control=control, **task)
+        if render_mode is not None and render_mode not in self.metadata["render_modes"]:
+            raise ValueError(f"render_mode must be one of {self.metadata['render_modes']} or "
+                             f"None, got {render_mode!r}")
+        self.render_mode = render_mode
+        self.task = ReachBatch(self.robot, self.config, self.carriage, 1)
+        self.observation_space = self.task.observation_space
+        self.action_space = self.task.action_space
+        self._renderer = None
+        self._last_info: dict[str, Any] = {}
+
+    # -- Gymnasium API ----------------------------------------------------------------------
+    def reset(self, *, seed: int | None = None, options: dict | None = None):
+        super().reset(seed=seed)
+        # the task draws from a generator derived from the env's own np_random
+        self.task.rngs = [np.random.default_rng(self.np_random.integers(2**63))]
+        if options and "tolerance" in options:
+            self.set_tolerance(options["tolerance"])
+        self.task.reset(np.array([0]))
+        self._last_info = {"is_success": self._distance() <= self.task.tolerance,
+                           "distance": self._distance(), "snapped": False,
+                           "solver_failure": False}
+        if self.render_mode == "human":
+            self.render()
+        return self._obs(), dict(self._last_info)
+
+    def step(self, action):
+        reward, terminated, truncated, infos = self.task.step(np.asarray(action)[None])
+        info = {k: (v[0].copy() if isinstance(v, np.ndarray) and v.ndim > 1 else
+                    v[0].item() if isinstance(v, np.ndarray) else v) for k, v in infos.items()}
+        self._last_info = info
+        if self.render_mode == "human":
+            self.render()
+        return (self._obs(), float(reward[0]), bool(terminated[0]), bool(truncated[0]), info)
+
+    def compute_reward(self, achieved_goal, desired_goal, info) -> np.ndarray | float:
+        """Vectorized over leading axes (SB3's HerReplayBuffer relabelling): depends on the
+        goals, the current tolerance and, where ``info`` carries it, the snap flag."""
+        snapped = _info_field(info, "snap_terminated", np.shape(achieved_goal)[:-1])
+        r = compute_reward(achieved_goal, desired_goal, self.task.tolerance, self.config.reward,
+                           self.config.dense_scale, snapped, self.config.snap_penalty)
+        return r if r.ndim else float(r)
+
+    def set_tolerance(self, tolerance: float) -> None:
+        """Success radius [m] from now on (curricula)."""
+        self.task.set_tolerance(tolerance)
+
+    def render(self):
+        if self.render_mode is None:
+            gym.logger.warn("render() called without a render_mode; pass render_mode= to make")
+            return None
+        from .render import ReachRenderer
+        if self._renderer is None:
+            self._renderer = ReachRenderer(self.robot, human=self.render_mode == "human")
+        return self._renderer.draw(self.task, 0)
+
+    def close(self):
+        if self._renderer is not None:
+            self._renderer.close()
+            self._renderer = None
+
+    # -- helpers ----------------------------------------------------------------------------
+    def _obs(self) -> dict[str, np.ndarray]:
+        return {k: v[0] for k, v in self.task.observations().items()}
+
+    def _distance(self) -> float:
+        return float(np.linalg.norm(self.task.robots.tip[0] - self.task.goal[0]))
+
+    @property
+    def actuation(self) -> np.ndarray:
+        """Current actuator coordinates ``(2N,)`` ``(D [m], alpha [rad])``."""
+        return self.task.robots.x[0].copy()
+
+    @property
+    def elastic_forces(self) -> np.ndarray:
+        """Current ``g = dU*/dx`` ``(2N,)`` [N, N·m]."""
+        return self.task.robots.g[0].copy()
+
+
+def _info_field(info, key: str, shape) -> np.ndarray | None:
+    """``info[key]`` from a dict, or from a list/array of dicts (HER), else ``None``."""
+    if info is None:
+        return None
+    if isinstance(info, dict):
+        return np.asarray(info[key]) if key in info else None
+    items = list(np.asarray(info, dtype=object).reshape(-1))
+    if not items or not all(isinstance(i, dict) and key in i for i in items):
+        return None
+    return np.array([bool(i[key]) for i in items]).reshape(shape)

@@ -1,0 +1,259 @@
+"""The reaching task on a batch of robots: goals, observations, rewards, episode logic.
+
+:class:`ReachBatch` is shared by the single-robot Gymnasium environment
+(:class:`envs.reach_env.CTRReachEnv`, ``B = 1``) and the natively batched SB3 ``VecEnv``
+(:class:`envs.vec_env.CTRReachVecEnv`): both are thin faces over the same arrays, so they cannot
+drift apart.
+
+Observation (``observation`` entry, float32, every entry clipped to ``[-OBS_BOUND, OBS_BOUND]``),
+in this order for ``N`` tubes:
+
+====================  =====  ==================================================================
+entry                 size   meaning
+====================  =====  ==================================================================
+sin alpha, cos alpha  2N     rotation of each tube's base
+D (normalized)        N      insertion mapped from ``[insertion_min, insertion_max]`` to [-1, 1]
+g / scale             2N     elastic actuator forces/torques ``dU*/dx`` over the action scale
+previous action       2N     the last action (zeros after reset)
+xdot (normalized)     2N     carriage velocities / target speeds (``second_order`` only)
+tip / reach           3      tip position [m] over the robot's reach (base frame)
+(goal - tip) / reach  3      the error vector
+stability margin      1      ``tanh(lambda_min / margin_scale)``
+at limit              2N     lower and upper stroke-limit flags of each insertion carriage
+====================  =====  ==================================================================
+
+``achieved_goal`` is the tip position and ``desired_goal`` the goal [m]. The tolerance is not in
+the observation: HER recomputes rewards with the current tolerance (set_tolerance).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+from gymnasium import spaces
+
+from .dynamics import CarriageModel, RobotBatch
+from .robots import Robot, solve_batch
+
+__all__ = ["ReachConfig", "ReachBatch", "OBS_BOUND", "compute_reward"]
+
+OBS_BOUND = 10.0
+
+
+@dataclass(frozen=True)
+class ReachConfig:
+    """Task options (all have defaults; see the environment docs).
+
+    Attributes:
+        control: ``"force"`` (actions are actuator forces/torques) or ``"joint"`` (actions are
+            joint increments, the literature's convention).
+        reward: ``"sparse"`` (``-1`` until within tolerance, ``0`` inside) or ``"dense"``
+            (``-d / dense_scale``, ``+1`` inside the tolerance).
+        tolerance: [m] success radius (default 1 mm); change at run time with
+            ``set_tolerance`` (curricula).
+        dense_scale: [m] distance normalization of the dense reward.
+        max_joint_step: ``(insertion [m], rotation [rad])`` per step at action ``+-1`` (joint
+            control; default 1 mm and 5 deg).
+        snap_mode: ``"terminate"`` (default: end the episode with ``snap_penalty`` added) or
+            ``"continue"`` (flag it in ``info`` and go on).
+        snap_penalty: reward added at a snap (default ``-1 / (1 - 0.95) = -20``, the value of
+            never reaching the goal under the sparse reward with gamma 0.95).
+        goal_min_distance: [m] goals are at least this far from the start tip.
+    """
+
+    control: str = "force"
+    reward: str = "sparse"
+    tolerance: float = 1e-3
+    dense_scale: float = 0.01
+    max_joint_step: tuple[float, float] = (1e-3, math.radians(5.0))
+    snap_mode: str = "terminate"
+    snap_penalty: float = -20.0
+    goal_min_distance: float = 2e-3
+
+    def __post_init__(self) -> None:
+        if self.control not in ("force", "joint"):
+            raise ValueError(f"control must be 'force' or 'joint', got {self.control!r}")
+        if self.reward not in ("sparse", "dense"):
+            raise ValueError(f"reward must be 'sparse' or 'dense', got {self.reward!r}")
+        if self.snap_mode not in ("terminate", "continue"):
+            raise ValueError(f"snap_mode must be 'terminate' or 'continue', got "
+                             f"{self.snap_mode!r}")
+        if not (self.tolerance > 0 and math.isfinite(self.tolerance)):
+            raise ValueError(f"tolerance must be a positive length [m], got {self.tolerance!r}")
+        if not (self.dense_scale > 0):
+            raise ValueError(f"dense_scale must be > 0, got {self.dense_scale!r}")
+        if len(self.max_joint_step) != 2 or min(self.max_joint_step) <= 0:
+            raise ValueError(f"max_joint_step must be two positive numbers (m, rad), got "
+                             f"{self.max_joint_step!r}")
+
+
+def compute_reward(achieved_goal, desired_goal, tolerance: float, kind: str,
+                   dense_scale: float, snapped=None, snap_penalty: float = 0.0) -> np.ndarray:
+    """Vectorized reward over the last axis (``(..., 3)`` goals) -> ``(...,)`` float32."""
+    d = np.linalg.norm(np.asarray(achieved_goal, np.float64)
+                       - np.asarray(desired_goal, np.float64), axis=-1)
+    inside = d <= tolerance
+    r = -(~inside).astype(np.float64) if kind == "sparse" else -d / dense_scale + inside
+    if snapped is not None:
+        r = r + snap_penalty * np.asarray(snapped, dtype=np.float64)
+    return r.astype(np.float32)
+
+
+class ReachBatch:
+    """``B`` reaching tasks on one :class:`~envs.dynamics.RobotBatch`.
+
+    Randomness: one ``numpy.random.Generator`` per robot (``rngs``), so robot ``i`` of a batch
+    seeded with ``seed`` behaves as a single environment seeded with the ``i``-th child of
+    ``SeedSequence(seed)``.
+    """
+
+    def __init__(self, robot: Robot, config: ReachConfig, carriage: CarriageModel,
+                 batch_size: int):
+        self.robot, self.config, self.carriage = robot, config, carriage
+        self.B, self.N = batch_size, robot.n_tubes
+        self.robots = RobotBatch(robot, carriage, batch_size)
+        self.tolerance = config.tolerance
+        self.goal = np.zeros((batch_size, 3))
+        self.prev_action = np.zeros((batch_size, 2 * self.N))
+        self.rngs = [np.random.default_rng(s) for s in np.random.SeedSequence().spawn(batch_size)]
+        N = self.N
+        self.obs_size = 2 * N + N + 2 * N + 2 * N + (2 * N if carriage.kind == "second_order"
+                                                     else 0) + 3 + 3 + 1 + 2 * N
+        self.observation_space = spaces.Dict({
+            "observation": spaces.Box(-OBS_BOUND, OBS_BOUND, (self.obs_size,), np.float32),
+            "achieved_goal": spaces.Box(-2 * robot.reach, 2 * robot.reach, (3,), np.float32),
+            "desired_goal": spaces.Box(-2 * robot.reach, 2 * robot.reach, (3,), np.float32),
+        })
+        self.action_space = spaces.Box(-1.0, 1.0, (2 * N,), np.float32)
+        self.speeds = np.concatenate([np.full(N, carriage.insertion_speed),
+                                      np.full(N, carriage.rotation_speed)])
+
+    # -- seeding and sampling -------------------------------------------------------------------
+    def seed(self, seed: int | None) -> None:
+        children = np.random.SeedSequence(seed).spawn(self.B)
+        self.rngs = [np.random.default_rng(s) for s in children]
+
+    def sample_stable(self, idx: np.ndarray, per_robot: int = 2, max_rounds: int = 10):
+        """For each robot in ``idx``, ``per_robot`` stable, converged equilibria sampled
+        uniformly in actuator space with that robot's generator (one batched solve per round;
+        rejected samples are redrawn). Returns ``(x (len, per_robot, 2N), tips, eq, rows)`` where
+        ``eq``/``rows`` give the Equilibrium rows of the first sample of each robot."""
+        k = len(idx)
+        xs = np.zeros((k, per_robot, 2 * self.N))
+        tips = np.zeros((k, per_robot, 3))
+        first_eq, first_rows = [None] * k, [None] * k
+        need = [(i, s) for i in range(k) for s in range(per_robot)]
+        for _ in range(max_rounds):
+            if not need:
+                break
+            cand = np.stack([self.robot.sample_actuation(self.rngs[idx[i]], 1)[0]
+                             for i, _ in need])
+            eq = solve_batch(self.robot, cand)
+            self.robots.solves += 1
+            ok = (eq.converged & eq.stable).numpy()
+            tip = eq.tip_position.numpy()
+            rest = []
+            for r, (i, s) in enumerate(need):
+                if ok[r]:
+                    xs[i, s], tips[i, s] = cand[r], tip[r]
+                    if s == 0:
+                        first_eq[i], first_rows[i] = eq, r
+                else:
+                    rest.append((i, s))
+            need = rest
+        if need:
+            raise RuntimeError(f"could not sample stable equilibria for robots "
+                               f"{sorted({int(idx[i]) for i, _ in need})} in {max_rounds} rounds")
+        return xs, tips, first_eq, first_rows
+
+    def reset(self, idx: np.ndarray) -> None:
+        """New start state (at rest) and goal for robots ``idx``."""
+        idx = np.asarray(idx, dtype=int)
+        if len(idx) == 0:
+            return
+        xs, tips, eqs, rows = self.sample_stable(idx, per_robot=2)
+        # start = sample 0, goal = tip of sample 1 (resampled while too close to the start)
+        goal = tips[:, 1]
+        close = np.linalg.norm(goal - tips[:, 0], axis=-1) < self.config.goal_min_distance
+        for i in np.flatnonzero(close):
+            for _ in range(20):
+                x2, t2, _, _ = self.sample_stable(idx[i:i + 1], per_robot=1)
+                if np.linalg.norm(t2[0, 0] - tips[i, 0]) >= self.config.goal_min_distance:
+                    goal[i] = t2[0, 0]
+                    break
+        # start states: one Equilibrium per solve round; set them per source batch
+        by_eq: dict[int, tuple] = {}
+        for i, (e, r) in enumerate(zip(eqs, rows, strict=True)):
+            by_eq.setdefault(id(e), (e, [], []))[1].append(i)
+            by_eq[id(e)][2].append(r)
+        for e, members, r in by_eq.values():
+            self.robots.set_state(idx[members], xs[members, 0], eq=e, rows=np.array(r))
+        self.goal[idx] = goal
+        self.prev_action[idx] = 0.0
+
+    # -- stepping -----------------------------------------------------------------------------
+    def step(self, action: np.ndarray):
+        """Apply ``action (B, 2N)`` in ``[-1, 1]``; returns ``(reward, terminated, truncated,
+        infos)`` with ``infos`` a dict of ``(B,)`` arrays."""
+        a = np.clip(np.nan_to_num(np.asarray(action, np.float64).reshape(self.B, 2 * self.N)),
+                    -1.0, 1.0)
+        tip0 = self.robots.tip.copy()
+        if self.config.control == "force":
+            tau = a * self.robot.action_scale
+            flags = self.robots.step_force(tau)
+        else:
+            N = self.N
+            step = np.concatenate([np.full(N, self.config.max_joint_step[0]),
+                                   np.full(N, self.config.max_joint_step[1])])
+            tau = self.robots.g.copy()  # position control holds the elastic load
+            flags = self.robots.step_joint(a * step)
+        self.prev_action = a
+        snapped = flags["snapped"]
+        failure = flags["solver_failure"]
+        d = np.linalg.norm(self.robots.tip - self.goal, axis=-1)
+        snap_term = snapped & (self.config.snap_mode == "terminate")
+        reward = compute_reward(self.robots.tip, self.goal, self.tolerance, self.config.reward,
+                                self.config.dense_scale, snap_term, self.config.snap_penalty)
+        infos = {
+            "is_success": d <= self.tolerance,
+            "distance": d,
+            "snapped": snapped,
+            "snap_terminated": snap_term,
+            "solver_failure": failure,
+            "tip_jump": flags["tip_jump"],
+            "substeps": flags["substeps"],
+            "tau": tau,
+            "effort": (tau ** 2).sum(-1) * self.carriage.control_period,
+            "saturated": (np.abs(a) >= 0.999).mean(-1),
+            "tip_speed": np.linalg.norm(self.robots.tip - tip0, axis=-1)
+            / self.carriage.control_period,
+            "at_limit": self.robots.at_lower.any(-1) | self.robots.at_upper.any(-1),
+        }
+        terminated = snap_term & ~failure
+        truncated = failure
+        return reward, terminated, truncated, infos
+
+    # -- observations -------------------------------------------------------------------------
+    def observations(self) -> dict[str, np.ndarray]:
+        rb, robot = self.robots, self.robot
+        N = self.N
+        alpha = rb.x[:, N:]
+        lo, hi = np.array(robot.insertion_min), np.array(robot.insertion_max)
+        Dn = 2.0 * (rb.x[:, :N] - lo) / np.maximum(hi - lo, 1e-12) - 1.0
+        parts = [np.sin(alpha), np.cos(alpha), Dn, rb.g / robot.action_scale, self.prev_action]
+        if self.carriage.kind == "second_order":
+            parts.append(rb.v / self.speeds)
+        parts += [rb.tip / robot.reach, (self.goal - rb.tip) / robot.reach,
+                  np.tanh(rb.margin / robot.margin_scale)[:, None],
+                  rb.at_lower.astype(np.float64), rb.at_upper.astype(np.float64)]
+        obs = np.clip(np.nan_to_num(np.concatenate(parts, -1), nan=0.0), -OBS_BOUND, OBS_BOUND)
+        return {"observation": obs.astype(np.float32),
+                "achieved_goal": rb.tip.astype(np.float32),
+                "desired_goal": self.goal.astype(np.float32)}
+
+    def set_tolerance(self, tolerance: float) -> None:
+        if not (tolerance > 0 and math.isfinite(tolerance)):
+            raise ValueError(f"tolerance must be a positive length [m], got {tolerance!r}")
+        self.tolerance = float(tolerance)
