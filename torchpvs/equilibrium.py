@@ -238,6 +238,36 @@ def _actuation(scene, tubes, res):
     return gD.detach(), gA.detach()
 
 
+def paper_scope_check(tubes, D: torch.Tensor, loaded: torch.Tensor, tol: float = 1e-12) -> None:
+    """Raise ``ValueError`` (naming the field) where the paper's eq. (41) does not apply."""
+    B, N = D.shape
+    if N > 2:
+        raise ValueError(f"force_model='paper' (the paper's eq. 41) is defined for one or two "
+                         f"tubes; this scene has {N} (use force_model='energy')")
+    if bool(loaded.any()):
+        raise ValueError("force_model='paper' (eq. 41) is derived without external load: "
+                         "load.tip_force and load.tip_moment must be zero")
+    L = tubes.length.expand(B, N)
+    Ls = tubes.straight.expand(B, N)
+    coef = tubes.coef.expand(B, N, 3, tubes.coef.shape[-1])
+    curved = coef[..., :2, :].abs().sum((-1, -2)) > 0
+    ell = (L - D).clamp(min=0.0)
+    for j in range(N):
+        bad = curved[:, j] & (Ls[:, j] - D[:, j] > tol) & (ell[:, j] > tol)
+        if bool(bad.any()):
+            b = int(bad.nonzero()[0])
+            raise ValueError(
+                f"force_model='paper': tubes[{j}].straight_length ({float(Ls[b, j]):.6g} m) "
+                f"exceeds the insertion D_{j + 1} ({float(D[b, j]):.6g} m) in element {b}: the "
+                f"straight-to-curved transition lies beyond the orifice, which eq. (41) omits")
+        if bool((ell[:, j] <= tol).any()):
+            raise ValueError(f"force_model='paper': tube {j + 1} lies entirely inside the guide "
+                             f"(insertion >= tubes[{j}] length)")
+    if N == 2 and bool((ell[:, 0] > ell[:, 1] + tol).any()):
+        raise ValueError("force_model='paper': the outer tube must end before the inner one "
+                         "(L_1 - D_1 <= L_2 - D_2), as in the paper's Fig. 3")
+
+
 def _paper_actuation(tubes, res, tol: float = 1e-12):
     """The paper's eq. (41) (Renda et al., RA-L 2021) evaluated on the equilibrium, for
     ``N <= 2`` tubes without tip load (``force_model="paper"``; docs/actuation-forces.md).
@@ -263,31 +293,9 @@ def _paper_actuation(tubes, res, tol: float = 1e-12):
     q, lay, disc = res["q"].detach(), res["lay"], res["disc"]
     D = res["D"]
     B, N = D.shape
-    if N > 2:
-        raise ValueError(f"force_model='paper' (the paper's eq. 41) is defined for one or two "
-                         f"tubes; this scene has {N} (use force_model='energy')")
-    if bool(res["loaded"].any()):
-        raise ValueError("force_model='paper' (eq. 41) is derived without external load: "
-                         "load.tip_force and load.tip_moment must be zero")
-    L = tubes.length.expand(B, N)
-    Ls = tubes.straight.expand(B, N)
+    paper_scope_check(tubes, D, (res["F"].abs().sum(-1) > 0) | (res["M"].abs().sum(-1) > 0),
+                      tol)
     coef = tubes.coef.expand(B, N, 3, tubes.coef.shape[-1])
-    curved = coef[..., :2, :].abs().sum((-1, -2)) > 0
-    ell = (L - D).clamp(min=0.0)
-    for j in range(N):
-        bad = curved[:, j] & (Ls[:, j] - D[:, j] > tol) & (ell[:, j] > tol)
-        if bool(bad.any()):
-            b = int(bad.nonzero()[0])
-            raise ValueError(
-                f"force_model='paper': tubes[{j}].straight_length ({float(Ls[b, j]):.6g} m) "
-                f"exceeds the insertion D_{j + 1} ({float(D[b, j]):.6g} m) in element {b}: the "
-                f"straight-to-curved transition lies beyond the orifice, which eq. (41) omits")
-        if bool((ell[:, j] <= tol).any()):
-            raise ValueError(f"force_model='paper': tube {j + 1} lies entirely inside the guide "
-                             f"(insertion >= tubes[{j}] length)")
-    if N == 2 and bool((ell[:, 0] > ell[:, 1] + tol).any()):
-        raise ValueError("force_model='paper': the outer tube must end before the inner one "
-                         "(L_1 - D_1 <= L_2 - D_2), as in the paper's Fig. 3")
 
     n_q = disc.n_basis * 2 + coef.shape[-1] + 6
     xg, wg = gauss_legendre(n_q, dtype=q.dtype, device=q.device)

@@ -225,6 +225,10 @@ def solve(scene: Scene | str, *, insertion=None, rotation=None, tip_force=None, 
             raise ValueError(f"{name} has batch size {t.shape[0]}, expected 1 or {B}")
     D, A, F, M = (t.expand(B, -1).contiguous() for t in (D, A, F, M))
     _check_actuation(D, scene)
+    if opts.force_model == "paper" and opts.compute_forces:
+        from .equilibrium import paper_scope_check
+        loaded = (F.abs().sum(-1) > 0) | (M.abs().sum(-1) > 0)
+        paper_scope_check(tube_tensors(scene, dtype, device), D, loaded)
     return _solve(scene, tube_tensors(scene, dtype, device), D, A, F, M, opts, initial)
 
 
