@@ -1,0 +1,311 @@
+"""Evaluate agents and baselines on the same fixed, seeded goals.
+
+    python -m training.evaluate --policy training/policies/sac_her_force.zip \
+        --baselines osc zero random --episodes 500 --out runs/eval
+
+Every policy runs on a :class:`envs.CTRReachVecEnv` seeded identically, so episode ``k`` has the
+same start state and goal for every policy. Metrics (per policy): success at 1/2/5 mm (final
+distance), median, IQR and 95th percentile of the final error, steps to the first hit and to
+settle (within 1 mm until the end), effort ``sum ||tau||^2 dt`` and peak ``|tau|``, fraction of
+saturated action components, snap and solver-failure rates. Writes ``metrics.json`` and figures
+(error histogram, workspace error map, trajectories with force traces, learning curve when
+a run folder with ``evaluations.npz`` is given).
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["rollout", "summarize", "main"]
+
+TOLERANCES = (1e-3, 2e-3, 5e-3)
+
+
+def rollout(policy, venv, n_episodes: int, seed: int = 12345, progress: bool = True,
+            keep_traces: int = 4) -> dict[str, np.ndarray]:
+    """Run ``n_episodes`` full episodes (``venv.max_episode_steps`` steps each, no early stop)
+    in batches of ``venv.num_envs``. Episodes are seeded by ``seed`` and their batch index, so
+    every policy meets the same starts and goals. Returns per-episode arrays and traces."""
+    B, T = venv.num_envs, venv.max_episode_steps
+    n_batches = -(-n_episodes // B)
+    keys = ("final_error", "first_hit", "settle", "effort", "peak_tau", "saturation", "snap",
+            "failure", "goal", "start_tip")
+    out: dict[str, list] = {k: [] for k in keys}
+    traces = []
+    bar = None
+    if progress:
+        try:
+            from tqdm import tqdm
+            bar = tqdm(total=n_batches * T, desc="evaluate", unit="step", leave=False,
+                       disable=not sys.stderr.isatty())
+        except ImportError:  # pragma: no cover
+            bar = None
+    for b in range(n_batches):
+        venv.seed(seed + b)
+        obs = venv.reset()
+        venv.elapsed[:] = 0
+        dist = np.zeros((T, B))
+        effort = np.zeros(B)
+        peak = np.zeros(B)
+        sat = np.zeros(B)
+        snap = np.zeros(B, dtype=bool)
+        fail = np.zeros(B, dtype=bool)
+        alive = np.ones(B, dtype=bool)
+        goal = venv.task.goal.copy()
+        start_tip = venv.task.robots.tip.copy()
+        tr_tip, tr_tau = [], []
+        for t in range(T):
+            action = policy(obs)
+            obs, _, dones, infos = venv.step(action)
+            d = np.array([i["distance"] for i in infos])
+            tau = np.stack([i["tau"] for i in infos])
+            # an episode that ended early (snap/failure) keeps its last distance
+            dist[t] = np.where(alive, d, dist[t - 1] if t else d)
+            effort += alive * np.array([i["effort"] for i in infos])
+            peak = np.maximum(peak, alive * np.abs(tau).max(-1))
+            sat += alive * np.array([i["saturated"] for i in infos])
+            snap |= alive & np.array([i["snap_terminated"] for i in infos])
+            fail |= alive & np.array([i["solver_failure"] for i in infos])
+            alive &= ~(dones & (t < T - 1))
+            if len(traces) + 0 < keep_traces:
+                tr_tip.append(np.array([i["terminal_observation"]["achieved_goal"]
+                                        if "terminal_observation" in i else o
+                                        for i, o in zip(infos, obs["achieved_goal"],
+                                                        strict=True)]))
+                tr_tau.append(tau)
+            if bar is not None:
+                bar.update(1)
+        inside = dist <= TOLERANCES[0]
+        first = np.where(inside.any(0), inside.argmax(0) + 1, -1)
+        # settle: first step after which the tip stays within 1 mm to the end
+        outside_after = np.flip(np.cumsum(np.flip(~inside, 0), 0), 0)
+        settled = (outside_after == 0)
+        settle = np.where(settled.any(0), settled.argmax(0) + 1, -1)
+        out["final_error"].append(dist[-1])
+        out["first_hit"].append(first)
+        out["settle"].append(settle)
+        out["effort"].append(effort)
+        out["peak_tau"].append(peak)
+        out["saturation"].append(sat / T)
+        out["snap"].append(snap)
+        out["failure"].append(fail)
+        out["goal"].append(goal)
+        out["start_tip"].append(start_tip)
+        if len(traces) < keep_traces and tr_tip:
+            traces.append({"tip": np.stack(tr_tip, 1)[0], "tau": np.stack(tr_tau, 1)[0],
+                           "goal": goal[0]})
+    if bar is not None:
+        bar.close()
+    res = {k: np.concatenate(v)[:n_episodes] for k, v in out.items()}
+    res["traces"] = traces
+    return res
+
+
+def summarize(res: dict[str, np.ndarray]) -> dict[str, float]:
+    e = res["final_error"] * 1e3
+    hit = res["first_hit"][res["first_hit"] > 0]
+    settle = res["settle"][res["settle"] > 0]
+    s = {f"success@{int(t * 1e3)}mm": float((res["final_error"] <= t).mean())
+         for t in TOLERANCES}
+    s.update({
+        "episodes": int(len(e)),
+        "median_error_mm": float(np.median(e)),
+        "iqr_error_mm": float(np.subtract(*np.percentile(e, [75, 25]))),
+        "p95_error_mm": float(np.percentile(e, 95)),
+        "mean_error_mm": float(e.mean()),
+        "steps_to_first_hit_median": float(np.median(hit)) if len(hit) else None,
+        "steps_to_settle_median": float(np.median(settle)) if len(settle) else None,
+        "effort_median_N2s": float(np.median(res["effort"])),
+        "peak_tau_median": float(np.median(res["peak_tau"])),
+        "saturation_fraction": float(res["saturation"].mean()),
+        "snap_rate": float(res["snap"].mean()),
+        "solver_failure_rate": float(res["failure"].mean()),
+    })
+    return s
+
+
+def _figures(results: dict, out: Path, run_dir: Path | None) -> list[Path]:
+    from matplotlib.backends.backend_agg import FigureCanvasAgg
+    from matplotlib.figure import Figure
+
+    paths = []
+
+    def save(fig, name):
+        FigureCanvasAgg(fig)
+        fig.tight_layout()
+        p = out / name
+        fig.savefig(p, dpi=110)
+        paths.append(p)
+
+    # final error histogram
+    fig = Figure(figsize=(7, 4))
+    ax = fig.add_subplot()
+    bins = np.logspace(-2, 2.5, 40)
+    for name, r in results.items():
+        ax.hist(np.clip(r["final_error"] * 1e3, 1e-2, None), bins=bins, histtype="step",
+                label=name, linewidth=1.5)
+    ax.axvline(1.0, color="k", linestyle="--", linewidth=0.8)
+    ax.set_xscale("log")
+    ax.set_xlabel("final tip error [mm]")
+    ax.set_ylabel("episodes")
+    ax.legend(fontsize=8)
+    save(fig, "error_histogram.png")
+    # workspace error map per policy (goal x-z, colour = final error)
+    n = len(results)
+    fig = Figure(figsize=(4 * n, 3.8))
+    for k, (name, r) in enumerate(results.items()):
+        ax = fig.add_subplot(1, n, k + 1)
+        g = r["goal"] * 1e3
+        sc = ax.scatter(np.hypot(g[:, 0], g[:, 1]), g[:, 2], c=np.log10(
+            np.clip(r["final_error"] * 1e3, 1e-2, None)), cmap="viridis", s=8, vmin=-1, vmax=2)
+        ax.set_title(name, fontsize=9)
+        ax.set_xlabel("goal radial distance [mm]")
+        ax.set_ylabel("goal z [mm]")
+        ax.set_aspect("equal")
+    fig.colorbar(sc, ax=fig.axes, label="log10 final error [mm]")
+    FigureCanvasAgg(fig)
+    p = out / "workspace_error_map.png"
+    fig.savefig(p, dpi=110)
+    paths.append(p)
+    # trajectories with force traces (first policy with traces)
+    for name, r in results.items():
+        if not r["traces"]:
+            continue
+        fig = Figure(figsize=(9, 3.2 * len(r["traces"])))
+        for k, tr in enumerate(r["traces"]):
+            ax = fig.add_subplot(len(r["traces"]), 2, 2 * k + 1)
+            d = np.linalg.norm(tr["tip"] - tr["goal"], axis=-1) * 1e3
+            ax.semilogy(np.maximum(d, 1e-3))
+            ax.axhline(1.0, color="k", linestyle="--", linewidth=0.8)
+            ax.set_ylabel("tip error [mm]")
+            ax.set_xlabel("step")
+            ax2 = fig.add_subplot(len(r["traces"]), 2, 2 * k + 2)
+            N = tr["tau"].shape[-1] // 2
+            for j in range(N):
+                ax2.plot(tr["tau"][:, j], label=f"F{j + 1} [N]")
+                ax2.plot(tr["tau"][:, N + j] * 10, linestyle=":", label=f"10·T{j + 1} [N·m]")
+            ax2.set_xlabel("step")
+            ax2.legend(fontsize=6, ncol=2)
+        fig.suptitle(f"{name}: tip error and actuator forces/torques")
+        save(fig, f"trajectories_{name}.png")
+    # learning curve
+    if run_dir is not None and (run_dir / "evaluations.npz").exists():
+        data = np.load(run_dir / "evaluations.npz")
+        fig = Figure(figsize=(6, 3.5))
+        ax = fig.add_subplot()
+        if "successes" in data and len(data["successes"]):
+            ax.plot(data["timesteps"], np.asarray(data["successes"]).mean(-1), marker="o")
+            ax.set_ylabel("eval success rate")
+        else:
+            ax.plot(data["timesteps"], data["results"].mean(-1), marker="o")
+            ax.set_ylabel("eval return")
+        ax.set_xlabel("environment steps")
+        ax.grid(alpha=0.3)
+        save(fig, "learning_curve.png")
+    return paths
+
+
+def load_policy(path: str, venv):
+    """An SB3 model (.zip) as a batched, deterministic policy."""
+    from stable_baselines3 import PPO, SAC, TD3
+
+    algo = None
+    meta = Path(path).with_suffix(".json")
+    if meta.exists():
+        algo = json.loads(meta.read_text()).get("algo")
+    classes = {"sac": SAC, "td3": TD3, "ppo": PPO}
+    order = [classes[algo]] if algo in classes else list(classes.values())
+    err = None
+    for cls in order:
+        try:
+            model = cls.load(path, env=venv, device="cpu")  # HER needs the env
+            break
+        except Exception as e:  # noqa: BLE001 - try the next algorithm
+            err = e
+    else:
+        raise ValueError(f"cannot load {path}: {err}")
+    norm = None
+    stats = Path(path).with_name(Path(path).stem + "_vecnormalize.pkl")
+    if stats.exists():
+        import pickle
+        with open(stats, "rb") as f:
+            norm = pickle.load(f)
+        norm.training = False
+
+    def policy(obs):
+        o = norm.normalize_obs(obs) if norm is not None else obs
+        return model.predict(o, deterministic=True)[0]
+    return policy
+
+
+def main(argv: list[str] | None = None) -> int:
+    import torch
+
+    p = argparse.ArgumentParser(prog="python -m training.evaluate", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--policy", action="append", default=[], metavar="NAME=PATH",
+                   help="an SB3 .zip (NAME= optional); repeatable")
+    p.add_argument("--baselines", nargs="*", default=[], choices=["osc", "zero", "random"])
+    p.add_argument("--env", default="torchpvs/CTRReachForce-v0",
+                   help="environment id (force or joint); a policy trained on the joint env "
+                        "must be evaluated with --env torchpvs/CTRReachJoint-v0")
+    p.add_argument("--robot", default="fig3_two_tube")
+    p.add_argument("--episodes", type=int, default=500)
+    p.add_argument("--batch", type=int, default=50, help="robots stepped together")
+    p.add_argument("--seed", type=int, default=12345)
+    p.add_argument("--run-dir", default=None, help="training run folder (learning curve)")
+    p.add_argument("--out", default="runs/eval")
+    p.add_argument("--threads", type=int, default=1)
+    args = p.parse_args(argv)
+    torch.set_num_threads(args.threads)
+
+    import envs
+    from training.controllers import OperationalSpaceController, RandomPolicy, ZeroPolicy
+
+    if args.env not in envs.ENV_IDS:
+        p.error(f"--env must be one of {sorted(envs.ENV_IDS)}, got {args.env!r}")
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    results, summary = {}, {}
+    jobs = []
+    for spec in args.policy:
+        name, _, path = spec.rpartition("=")
+        jobs.append((name or Path(path).stem, path))
+    jobs += [(b, None) for b in args.baselines]
+    if not jobs:
+        p.error("give at least one --policy or --baselines")
+    for name, path in jobs:
+        env_id = args.env
+        if path is not None:
+            meta = Path(path).with_suffix(".json")
+            if meta.exists():
+                env_id = json.loads(meta.read_text()).get("env_id", env_id)
+        venv = envs.CTRReachVecEnv(args.batch, robot=args.robot, control=envs.ENV_IDS[env_id])
+        if path is not None:
+            policy = load_policy(path, venv)
+        else:
+            policy = {"osc": OperationalSpaceController, "zero": ZeroPolicy,
+                      "random": RandomPolicy}[name](venv)
+        t0 = time.perf_counter()
+        res = rollout(policy, venv, args.episodes, seed=args.seed)
+        s = summarize(res)
+        s["env"] = env_id
+        s["wall_s"] = round(time.perf_counter() - t0, 1)
+        results[name], summary[name] = res, s
+        print(f"{name:>14s}: " + ", ".join(
+            f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}" for k, v in s.items()),
+            flush=True)
+    (out / "metrics.json").write_text(json.dumps(summary, indent=2))
+    paths = _figures(results, out, Path(args.run_dir) if args.run_dir else None)
+    print(f"wrote {out / 'metrics.json'} and " + ", ".join(str(p) for p in paths))
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
