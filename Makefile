@@ -16,7 +16,7 @@ $(STAMP): pyproject.toml constraints.txt
 venv: $(STAMP)
 
 demo: $(STAMP)
-	MPLBACKEND=Agg $(BIN)/torchpvs demo
+	MPLBACKEND=Agg $(BIN)/python -m training.demo
 
 test: $(STAMP)
 	MPLBACKEND=Agg $(BIN)/python -m pytest -q -m "not slow" -p no:cacheprovider

@@ -116,6 +116,7 @@ class ReachBatch:
         self.robots = RobotBatch(robot, carriage, batch_size)
         self.tolerance = config.tolerance
         self.goal = np.zeros((batch_size, 3))
+        self.goal_actuation = np.zeros((batch_size, 2 * robot.n_tubes))  # one preimage of goal
         self.prev_action = np.zeros((batch_size, 2 * self.N))
         self.rngs = [np.random.default_rng(s) for s in np.random.SeedSequence().spawn(batch_size)]
         N = self.N
@@ -176,12 +177,13 @@ class ReachBatch:
         xs, tips, eqs, rows = self.sample_stable(idx, per_robot=2)
         # start = sample 0, goal = tip of sample 1 (resampled while too close to the start)
         goal = tips[:, 1]
+        goal_x = xs[:, 1]
         close = np.linalg.norm(goal - tips[:, 0], axis=-1) < self.config.goal_min_distance
         for i in np.flatnonzero(close):
             for _ in range(20):
                 x2, t2, _, _ = self.sample_stable(idx[i:i + 1], per_robot=1)
                 if np.linalg.norm(t2[0, 0] - tips[i, 0]) >= self.config.goal_min_distance:
-                    goal[i] = t2[0, 0]
+                    goal[i], goal_x[i] = t2[0, 0], x2[0, 0]
                     break
         # start states: one Equilibrium per solve round; set them per source batch
         by_eq: dict[int, tuple] = {}
@@ -191,7 +193,17 @@ class ReachBatch:
         for e, members, r in by_eq.values():
             self.robots.set_state(idx[members], xs[members, 0], eq=e, rows=np.array(r))
         self.goal[idx] = goal
+        self.goal_actuation[idx] = goal_x
         self.prev_action[idx] = 0.0
+
+    def travel_steps(self, idx=None) -> np.ndarray:
+        """Control periods the carriages need, at their full-scale speeds, to move from the
+        current actuation to the sampled preimage of the goal (rotations wrapped): a lower
+        bound on the time to reach the goal that way (``(B,)``)."""
+        idx = np.arange(self.B) if idx is None else idx
+        d = self.goal_actuation[idx] - self.robots.x[idx]
+        d[:, self.N:] = np.angle(np.exp(1j * d[:, self.N:]))
+        return (np.abs(d) / (self.speeds * self.carriage.control_period)).max(-1)
 
     # -- stepping -----------------------------------------------------------------------------
     def step(self, action: np.ndarray):

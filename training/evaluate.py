@@ -35,7 +35,7 @@ def rollout(policy, venv, n_episodes: int, seed: int = 12345, progress: bool = T
     B, T = venv.num_envs, venv.max_episode_steps
     n_batches = -(-n_episodes // B)
     keys = ("final_error", "first_hit", "settle", "effort", "peak_tau", "saturation", "snap",
-            "failure", "goal", "start_tip")
+            "failure", "goal", "start_tip", "travel_steps")
     out: dict[str, list] = {k: [] for k in keys}
     traces = []
     bar = None
@@ -59,6 +59,7 @@ def rollout(policy, venv, n_episodes: int, seed: int = 12345, progress: bool = T
         alive = np.ones(B, dtype=bool)
         goal = venv.task.goal.copy()
         start_tip = venv.task.robots.tip.copy()
+        travel = venv.task.travel_steps()
         tr_tip, tr_tau = [], []
         for t in range(T):
             action = policy(obs)
@@ -97,6 +98,7 @@ def rollout(policy, venv, n_episodes: int, seed: int = 12345, progress: bool = T
         out["failure"].append(fail)
         out["goal"].append(goal)
         out["start_tip"].append(start_tip)
+        out["travel_steps"].append(travel)
         if len(traces) < keep_traces and tr_tip:
             traces.append({"tip": np.stack(tr_tip, 1)[0], "tau": np.stack(tr_tau, 1)[0],
                            "goal": goal[0]})
@@ -104,6 +106,7 @@ def rollout(policy, venv, n_episodes: int, seed: int = 12345, progress: bool = T
         bar.close()
     res = {k: np.concatenate(v)[:n_episodes] for k, v in out.items()}
     res["traces"] = traces
+    res["episode_steps"] = T
     return res
 
 
@@ -127,6 +130,12 @@ def summarize(res: dict[str, np.ndarray]) -> dict[str, float]:
         "snap_rate": float(res["snap"].mean()),
         "solver_failure_rate": float(res["failure"].mean()),
     })
+    # goals whose sampled preimage the carriages can reach within the episode at full speed
+    T = res.get("episode_steps", 100)
+    ok = res["travel_steps"] <= T
+    s["reachable_in_time_fraction"] = float(ok.mean())
+    s["success@1mm_reachable_in_time"] = (float((res["final_error"][ok] <= TOLERANCES[0]).mean())
+                                          if ok.any() else None)
     return s
 
 
