@@ -175,7 +175,7 @@ def main(argv=None) -> None:
     big = [r for r in batch_rows if r["B"] >= 64]
     print(f"\nTotal time ~ B^{slope([r['B'] for r in big], [r['t'] for r in big]):.2f} for "
           f"B >= 64; per-solve time at B = {Bs[-1]} is "
-          f"{batch_rows[0]['t'] / (batch_rows[-1]['t'] / Bs[-1]):.0f}x below B = 1.")
+          f"{batch_rows[0]['t'] / (batch_rows[-1]['t'] / Bs[-1]):.1f}x below B = 1.")
 
     # ---- figure --------------------------------------------------------------------------
     import matplotlib
