@@ -5,6 +5,7 @@ Pipeline: scene -> sections -> bases/quadrature -> energy -> Newton solve -> out
 
 from .continuation import ActuationPath, Continuation, FoldEvent, continuation
 from .equilibrium import Equilibrium
+from .force_control import ForceControlled, solve_force_controlled
 from .implicit import NearSingularStiffnessWarning
 from .layer import CTR
 from .scene import Actuation, Load, Scene, SceneError, Tube, builtin_scenes, load_scene
@@ -14,5 +15,6 @@ __all__ = [
     "Tube", "Actuation", "Load", "Scene", "SceneError", "load_scene", "builtin_scenes",
     "SolverOptions", "SolverError", "solve", "Equilibrium", "CTR", "NearSingularStiffnessWarning",
     "continuation", "ActuationPath", "Continuation", "FoldEvent",
+    "solve_force_controlled", "ForceControlled",
 ]
 __version__ = "0.1.0"
