@@ -224,10 +224,11 @@ def load_policy(path: str, venv):
     """An SB3 model (.zip) as a batched, deterministic policy."""
     from stable_baselines3 import PPO, SAC, TD3
 
-    algo = None
+    algo, residual = None, None
     meta = Path(path).with_suffix(".json")
     if meta.exists():
-        algo = json.loads(meta.read_text()).get("algo")
+        info = json.loads(meta.read_text())
+        algo, residual = info.get("algo"), info.get("residual")
     classes = {"sac": SAC, "td3": TD3, "ppo": PPO}
     order = [classes[algo]] if algo in classes else list(classes.values())
     err = None
@@ -250,6 +251,9 @@ def load_policy(path: str, venv):
     def policy(obs):
         o = norm.normalize_obs(obs) if norm is not None else obs
         return model.predict(o, deterministic=True)[0]
+    if residual is not None:
+        from .residual import residual_policy
+        return residual_policy(policy, venv, residual)
     return policy
 
 

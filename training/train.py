@@ -12,6 +12,8 @@ Configs are keyed like rl-baselines3-zoo's (see ``training/configs/``)::
     her: {n_sampled_goal: 4, goal_selection_strategy: future}
     normalize: false                       # VecNormalize (PPO)
     curriculum: {start: 0.01, end: 0.001, fraction: 0.5}   # tolerance [m], exponential
+    residual: {scale: 0.3, gain: 0.7}      # optional: learn a residual on the model-based
+                                           # controller (training/residual.py)
     eval: {freq: 20000, episodes: 50}
     hyperparams: {learning_rate: 1e-3, gamma: 0.95, ...}   # passed to the SB3 class
 
@@ -43,7 +45,8 @@ def load_config(path: str | Path) -> dict:
     if not isinstance(cfg, dict):
         raise ValueError(f"{path}: a config is a YAML mapping")
     known = {"env_id", "env_kwargs", "n_envs", "algo", "n_timesteps", "her", "normalize",
-             "curriculum", "eval", "hyperparams", "policy", "max_episode_steps", "notes"}
+             "curriculum", "eval", "hyperparams", "policy", "max_episode_steps", "notes",
+             "residual"}
     unknown = set(cfg) - known
     if unknown:
         raise ValueError(f"{path}: unknown keys {sorted(unknown)} (known: {sorted(known)})")
@@ -57,11 +60,19 @@ def load_config(path: str | Path) -> dict:
 
 
 def make_venv(cfg: dict, n_envs: int | None = None):
+    """The batched env of ``cfg`` (wrapped in :class:`training.residual.ResidualVecEnv` when
+    the config has a ``residual`` entry)."""
     import envs
-    return envs.CTRReachVecEnv(n_envs or cfg.get("n_envs", 8),
+    venv = envs.CTRReachVecEnv(n_envs or cfg.get("n_envs", 8),
                                control=envs.ENV_IDS[cfg["env_id"]],
                                max_episode_steps=cfg.get("max_episode_steps", 100),
                                **cfg.get("env_kwargs", {}))
+    if cfg.get("residual") is not None:
+        from .residual import ResidualVecEnv
+        if envs.ENV_IDS[cfg["env_id"]] != "force":
+            raise ValueError("residual: the base controller commands forces; use the force env")
+        venv = ResidualVecEnv(venv, _floats(dict(cfg["residual"])))
+    return venv
 
 
 def _floats(d: dict) -> dict:
@@ -197,7 +208,11 @@ def train(cfg: dict, *, steps: int | None = None, seed: int = 0, out: str | Path
     meta = {"algo": cfg["algo"], "env_id": cfg["env_id"], "env_kwargs": cfg.get("env_kwargs", {}),
             "steps": done, "steps_requested": total, "seed": seed, "wall_s": round(wall, 1),
             "command": cmd}
+    if cfg.get("residual") is not None:
+        meta["residual"] = _floats(dict(cfg["residual"]))
     (run_dir / "model.json").write_text(json.dumps(meta, indent=2))
+    if (run_dir / "best_model.zip").exists():  # the eval callback's best: same algo/env/residual
+        (run_dir / "best_model.json").write_text(json.dumps(meta, indent=2))
     if cfg.get("normalize"):
         import pickle
         with open(run_dir / "model_vecnormalize.pkl", "wb") as f:

@@ -115,3 +115,48 @@ def test_operational_space_controller_reaches_a_near_goal():
     for _ in range(40):
         obs, _, _, infos = venv.step(ctrl(obs))
     assert infos[0]["distance"] < 1e-3, infos[0]["distance"]
+
+
+def test_residual_with_zero_action_is_the_base_controller():
+    """ResidualVecEnv applies clip(osc + scale * a): with a = 0 the trajectory must be the
+    model-based controller's own, step for step (same seeds, same goals)."""
+    from training.residual import ResidualVecEnv
+
+    def run(residual: bool):
+        venv = envs.CTRReachVecEnv(2, max_episode_steps=5)
+        venv.seed(3)
+        if residual:
+            wrapped = ResidualVecEnv(venv, {"scale": 0.3})
+            obs = wrapped.reset()
+            for _ in range(5):
+                obs, *_ = wrapped.step(np.zeros((2, 4), np.float32))
+        else:
+            obs = venv.reset()
+            ctrl = OperationalSpaceController(venv)
+            for _ in range(5):
+                obs, *_ = venv.step(ctrl(obs))
+        return venv.task.robots.x.copy()
+
+    np.testing.assert_allclose(run(True), run(False), rtol=0, atol=1e-12)
+    with pytest.raises(ValueError, match="residual.scale"):
+        ResidualVecEnv(envs.CTRReachVecEnv(1), {"scale": -1})
+
+
+def test_residual_run_records_and_reloads_its_base(tmp_path):
+    """A residual config trains, writes ``residual`` into model.json, and evaluation applies the
+    base controller again (a reloaded residual agent is never the bare network)."""
+    cfg = train.load_config(CONFIGS[[c.stem for c in CONFIGS].index("sac_her_force_residual")])
+    cfg = {**cfg, "n_envs": 2, "eval": {}, "max_episode_steps": 10,
+           "hyperparams": {**cfg["hyperparams"], "learning_starts": 30, "buffer_size": 500,
+                           "batch_size": 16}}
+    run = train.train(cfg, steps=60, seed=2, out=tmp_path, name="res", progress=False)
+    meta = json.loads((run / "model.json").read_text())
+    assert meta["residual"]["scale"] == pytest.approx(0.3)
+    venv = envs.CTRReachVecEnv(2, max_episode_steps=10)
+    venv.seed(0)
+    obs = venv.reset()
+    policy = evaluate.load_policy(str(run / "model.zip"), venv)
+    from stable_baselines3 import SAC
+    bare = SAC.load(run / "model.zip", env=venv, device="cpu").predict(obs, deterministic=True)[0]
+    osc = OperationalSpaceController(venv, gain=0.7)(obs)
+    np.testing.assert_allclose(policy(obs), np.clip(osc + 0.3 * bare, -1, 1), atol=1e-6)
