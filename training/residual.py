@@ -3,12 +3,18 @@
 The agent's action ``a`` in ``[-1, 1]^(2N)`` is added, scaled, to the operational-space force
 controller's command (Silver et al. 2018, "Residual Policy Learning"; Johannink et al. 2019):
 
-    tau / tau_max = clip(osc(x, goal) + scale * a, -1, 1)
+    tau / tau_max = clip(osc(x, goal) + scale * gate * a, -1, 1),   gate = min(1, |goal - tip| / r)
 
-The robot still receives actuator forces and torques only; the residual learns what the model-based
-controller gets wrong (slow settling, snaps through unstable regions, the damped pseudo-inverse
-near singular configurations). A pure agent must learn the gravity-like feed-forward ``g(x)`` and
-the tip Jacobian from scratch, which the joint-space literature needed millions of steps for.
+The gate keeps the goal a fixed point of the closed loop: without it any residual the network
+outputs at the goal (SAC's deterministic mean is never exactly 0) becomes a constant force
+offset, which the controller's proportional term balances with a steady-state tip error — in a
+first run the deterministic success at 1 mm fell from 0.65 to 0.28 as training went on. With it
+the residual shapes the approach (large motions, snap avoidance) and the controller owns the
+last ``r`` (default 5 mm). The robot still receives actuator forces and torques only; the
+residual learns what the model-based controller gets wrong (slow settling, snaps through
+unstable regions, the damped pseudo-inverse near singular configurations). A pure agent must
+learn the feed-forward ``g(x)`` and the tip Jacobian from scratch, which the joint-space
+literature needed millions of steps for.
 
 :class:`ResidualVecEnv` wraps a :class:`envs.CTRReachVecEnv` for training; :func:`residual_policy`
 turns a trained model back into a batched policy for evaluation. Both read ``scale`` and the
@@ -30,30 +36,47 @@ def make_base(venv, spec: dict):
     spec = dict(spec)
     base = spec.pop("base", "osc")
     spec.pop("scale", None)
+    spec.pop("gate_radius", None)
     if base != "osc":
         raise ValueError(f"residual.base must be 'osc', got {base!r}")
     return OperationalSpaceController(venv, **spec)
 
 
-def _combine(base_action: np.ndarray, residual: np.ndarray, scale: float) -> np.ndarray:
-    return np.clip(base_action + scale * np.asarray(residual), -1.0, 1.0).astype(np.float32)
+def _gate(venv, radius: float) -> np.ndarray:
+    """``(B, 1)`` residual weight ``min(1, |goal - tip| / radius)`` (1 everywhere if radius 0)."""
+    if radius <= 0:
+        return np.ones((venv.num_envs, 1))
+    d = np.linalg.norm(venv.task.goal - venv.task.robots.tip, axis=-1, keepdims=True)
+    return np.minimum(1.0, d / radius)
+
+
+def _combine(base_action: np.ndarray, residual: np.ndarray, weight) -> np.ndarray:
+    return np.clip(base_action + weight * np.asarray(residual), -1.0, 1.0).astype(np.float32)
+
+
+def _spec(spec: dict | None) -> tuple[float, float]:
+    spec = dict(spec or {})
+    scale, radius = float(spec.get("scale", 0.3)), float(spec.get("gate_radius", 5e-3))
+    if not 0.0 < scale <= 2.0:
+        raise ValueError(f"residual.scale must be in (0, 2], got {scale}")
+    if not radius >= 0.0:
+        raise ValueError(f"residual.gate_radius must be >= 0 [m], got {radius}")
+    return scale, radius
 
 
 class ResidualVecEnv(VecEnvWrapper):
     """Apply ``clip(base(obs) + scale * action, -1, 1)`` to the wrapped env.
 
     ``venv`` must be a :class:`envs.CTRReachVecEnv` (the base controller reads its state);
-    ``spec`` is the config's ``residual`` mapping: ``scale`` (default 0.3), ``base`` and the base
-    controller's keyword arguments (``gain``, ``damping``, ``max_step``).
+    ``spec`` is the config's ``residual`` mapping: ``scale`` (default 0.3), ``gate_radius`` [m]
+    (default 5e-3; 0 = no gate), ``base`` and the base controller's keyword arguments (``gain``,
+    ``damping``, ``max_step``).
     """
 
     def __init__(self, venv, spec: dict | None = None):
         super().__init__(venv)
-        spec = dict(spec or {})
-        self.scale = float(spec.get("scale", 0.3))
-        if not 0.0 < self.scale <= 2.0:
-            raise ValueError(f"residual.scale must be in (0, 2], got {self.scale}")
-        self.base = make_base(venv, spec)
+        self.scale, self.gate_radius = _spec(spec)
+        self.base = make_base(venv, dict(spec or {}))
         self._obs = None
 
     def reset(self):
@@ -61,7 +84,8 @@ class ResidualVecEnv(VecEnvWrapper):
         return self._obs
 
     def step_async(self, actions: np.ndarray) -> None:
-        self.venv.step_async(_combine(self.base(self._obs), actions, self.scale))
+        weight = self.scale * _gate(self.venv, self.gate_radius)
+        self.venv.step_async(_combine(self.base(self._obs), actions, weight))
 
     def step_wait(self):
         obs, rewards, dones, infos = self.venv.step_wait()
@@ -72,8 +96,8 @@ class ResidualVecEnv(VecEnvWrapper):
 def residual_policy(model_predict, venv, spec: dict):
     """A batched policy ``obs -> action`` from a residual agent's ``predict`` on ``venv``."""
     base = make_base(venv, spec)
-    scale = float(spec.get("scale", 0.3))
+    scale, radius = _spec(spec)
 
     def policy(obs):
-        return _combine(base(obs), model_predict(obs), scale)
+        return _combine(base(obs), model_predict(obs), scale * _gate(venv, radius))
     return policy

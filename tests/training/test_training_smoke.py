@@ -117,29 +117,49 @@ def test_operational_space_controller_reaches_a_near_goal():
     assert infos[0]["distance"] < 1e-3, infos[0]["distance"]
 
 
-def test_residual_with_zero_action_is_the_base_controller():
-    """ResidualVecEnv applies clip(osc + scale * a): with a = 0 the trajectory must be the
-    model-based controller's own, step for step (same seeds, same goals)."""
+def _residual_vs_base(residual_action, goal_at_tip: bool = False, steps: int = 5):
+    """Final carriage positions of the residual wrapper driven by ``residual_action`` and of
+    the bare controller, from the same seeded start (and goal, or goal = the start tip)."""
     from training.residual import ResidualVecEnv
 
-    def run(residual: bool):
-        venv = envs.CTRReachVecEnv(2, max_episode_steps=5)
+    out = []
+    for wrapped in (True, False):
+        venv = envs.CTRReachVecEnv(2, max_episode_steps=steps + 1)  # no auto-reset
         venv.seed(3)
-        if residual:
-            wrapped = ResidualVecEnv(venv, {"scale": 0.3})
-            obs = wrapped.reset()
-            for _ in range(5):
-                obs, *_ = wrapped.step(np.zeros((2, 4), np.float32))
-        else:
-            obs = venv.reset()
-            ctrl = OperationalSpaceController(venv)
-            for _ in range(5):
-                obs, *_ = venv.step(ctrl(obs))
-        return venv.task.robots.x.copy()
+        env = ResidualVecEnv(venv, {"scale": 0.3, "gate_radius": 5e-3}) if wrapped else venv
+        obs = env.reset()
+        if goal_at_tip:
+            venv.task.goal[:] = venv.task.robots.tip
+        ctrl = OperationalSpaceController(venv)
+        for _ in range(steps):
+            obs, *_ = env.step(residual_action if wrapped else ctrl(obs))
+        out.append(venv.task.robots.x.copy())
+    return out
 
-    np.testing.assert_allclose(run(True), run(False), rtol=0, atol=1e-12)
+
+def test_residual_with_zero_action_is_the_base_controller():
+    """ResidualVecEnv applies clip(osc + scale * gate * a): with a = 0 the trajectory must be
+    the model-based controller's own, step for step (same seeds, same goals)."""
+    from training.residual import ResidualVecEnv
+
+    x_res, x_osc = _residual_vs_base(np.zeros((2, 4), np.float32))
+    np.testing.assert_allclose(x_res, x_osc, rtol=0, atol=1e-12)
     with pytest.raises(ValueError, match="residual.scale"):
         ResidualVecEnv(envs.CTRReachVecEnv(1), {"scale": -1})
+    with pytest.raises(ValueError, match="residual.gate_radius"):
+        ResidualVecEnv(envs.CTRReachVecEnv(1), {"gate_radius": -1e-3})
+
+
+def test_residual_gate_keeps_the_goal_a_fixed_point():
+    """With the tip on the goal the gate is 0: a full-scale residual changes nothing in the
+    first step (the controller alone holds tau = g), while away from the goal it does."""
+    ones = np.ones((2, 4), np.float32)
+    x_res, x_osc = _residual_vs_base(ones, goal_at_tip=True, steps=1)
+    np.testing.assert_allclose(x_res, x_osc, rtol=0, atol=1e-12)
+    # away from it the residual acts (one sign at least is not clipped away by a saturated
+    # controller command)
+    moved = [np.abs(np.subtract(*_residual_vs_base(a, steps=1))).max() for a in (ones, -ones)]
+    assert max(moved) > 1e-5, moved
 
 
 def test_residual_run_records_and_reloads_its_base(tmp_path):
