@@ -3,7 +3,8 @@
     python -m training.demo [--policy training/policies/sac_her_force.zip] [--goals 20]
 
 Loads the shipped SAC+HER policy for the force/torque-action environment (the paper's Fig. 3
-robot), evaluates it on seeded goals next to the model-based operational-space controller,
+robot; a residual agent on the operational-space controller, see ``training/residual.py``),
+evaluates it on seeded goals next to the model-based operational-space controller,
 prints the success rates and final errors, and saves a rendered rollout (a strip of frames with
 the actuator forces) to ``demo_out/rollout.png``. Without a policy file it demos the controller
 alone and says so.
@@ -12,6 +13,7 @@ alone and says so.
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 
@@ -56,7 +58,10 @@ def main(argv: list[str] | None = None) -> int:
     venv = envs.CTRReachVecEnv(args.goals, control="force")
     policies = {}
     if Path(args.policy).exists():
-        policies["SAC+HER (force actions)"] = load_policy(args.policy, venv)
+        meta = Path(args.policy).with_suffix(".json")
+        residual = meta.exists() and "residual" in json.loads(meta.read_text())
+        label = "SAC+HER residual on OSC" if residual else "SAC+HER (force actions)"
+        policies[label] = load_policy(args.policy, venv)
     else:
         print(f"no policy at {args.policy}: demo of the model-based controller only "
               f"(train one with: python -m training.train --config "
