@@ -180,3 +180,16 @@ def test_residual_run_records_and_reloads_its_base(tmp_path):
     bare = SAC.load(run / "model.zip", env=venv, device="cpu").predict(obs, deterministic=True)[0]
     osc = OperationalSpaceController(venv, gain=0.7)(obs)
     np.testing.assert_allclose(policy(obs), np.clip(osc + 0.3 * bare, -1, 1), atol=1e-6)
+
+
+def test_shipped_policy_demo_runs(tmp_path, capsys):
+    """The README's main job: the shipped policy loads (as a residual on the controller, per its
+    model.json), runs on 2 goals next to the controller, and the rollout strip is written."""
+    from training import demo
+
+    meta = json.loads(demo.DEFAULT_POLICY.with_suffix(".json").read_text())
+    assert meta["env_id"] == "torchpvs/CTRReachForce-v0" and "residual" in meta
+    assert demo.main(["--goals", "2", "-o", str(tmp_path)]) == 0
+    out = capsys.readouterr().out
+    assert "SAC+HER residual on OSC" in out and "operational-space controller" in out
+    assert (tmp_path / "rollout.png").stat().st_size > 10_000
