@@ -73,7 +73,7 @@ def main(argv: list[str] | None = None) -> int:
     for name, pol in policies.items():
         s = summarize(rollout(pol, venv, args.goals, seed=args.seed, progress=False))
         print(f"  {name:>30s}: success@1mm {s['success@1mm']:.2f}, @5mm {s['success@5mm']:.2f}, "
-              f"median final error {s['median_error_mm']:.2f} mm, snaps {s['snap_rate']:.2f}")
+              f"median final error {s['median_error_mm']:.3g} mm, snaps {s['snap_rate']:.2f}")
     # a rendered rollout of the first policy on one goal
     name, pol = next(iter(policies.items()))
     env1 = envs.CTRReachVecEnv(1, control="force", snap_mode="continue")
