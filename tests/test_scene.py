@@ -630,3 +630,170 @@ def test_random_broken_nesting_or_ordering_raises(data, draw):
     with pytest.raises(SceneError) as info:
         Scene.from_dict(data)
     assert field in str(info.value)
+
+
+# ---------------------------------------------------------------------------------------------
+# Issue 14, items 5, 8, 11: inputs that used to escape as internal exceptions or were silently
+# reinterpreted. Each is an error naming the field (or the file) and the rule.
+
+@settings(max_examples=40, deadline=None)
+@given(st.sampled_from(NUMERIC_FIELDS),
+       st.integers(min_value=2**1024, max_value=10**700), st.booleans())
+def test_integers_beyond_the_float_range_name_the_field(path_field, big, negative):
+    """A 400-digit E used to raise OverflowError from float(); now a SceneError names it."""
+    path, field = path_field
+    msg = _raises(_set(base(), path, -big if negative else big), field)
+    assert "float range" in msg and "digits" in msg
+    assert str(big)[:80] not in msg  # the value is summarized, not echoed whole
+
+
+@pytest.mark.parametrize("suffix", [".yaml", ".json"])
+def test_huge_integer_in_a_file_or_set_names_the_field(tmp_path, suffix):
+    big = int("9" * 400)
+    d = _set(base(), ("tubes", 0, "E"), big)
+    path = tmp_path / f"big{suffix}"
+    path.write_text(json.dumps(d) if suffix == ".json" else yaml.safe_dump(d))
+    with pytest.raises(SceneError, match=r"tubes\[0\]\.E .*float range"):
+        load_scene(path)
+    with pytest.raises(SceneError, match=r"tubes\[1\]\.G .*float range"):
+        load_scene("renda2021_fig3", [f"tubes[1].G={big}"])
+    # beyond Python's int() digit limit (4300) the parser itself refuses: still a SceneError
+    # that names the file / the --set
+    path.write_text(json.dumps(d).replace(str(big), "9" * 5000))
+    with pytest.raises(SceneError, match=f"big{suffix}"):
+        load_scene(path)
+    with pytest.raises(SceneError, match=r"tubes\[0\]\.E"):
+        load_scene("renda2021_fig3", ["tubes[0].E=" + "9" * 5000])
+
+
+def _half_values():
+    import numpy as np
+    import torch
+    return [np.float16(2.0), torch.tensor(2.0, dtype=torch.float16),
+            torch.tensor(2.0, dtype=torch.bfloat16)]
+
+
+@pytest.mark.parametrize("value", _half_values(), ids=["np.float16", "torch.half", "bfloat16"])
+@pytest.mark.parametrize(("path", "field"), NUMERIC_FIELDS, ids=[f for _, f in NUMERIC_FIELDS])
+def test_half_precision_numbers_are_refused(path, field, value):
+    msg = _raises(_set(base(), path, value), field)
+    assert "precision" in msg
+
+
+def test_single_and_double_precision_scalars_become_python_floats():
+    import numpy as np
+    import torch
+    d = base()
+    d["tubes"][0]["E"] = np.float32(58e9)
+    d["tubes"][1]["G"] = torch.tensor(21.5e9, dtype=torch.float64)
+    d["actuation"]["rotation"] = np.array([0.0, 1.0])
+    d["load"]["tip_force"] = torch.tensor([0.0, 0.1, 0.0], dtype=torch.float64)
+    s = Scene.from_dict(d)
+    assert type(s.tubes[0].E) is float and s.tubes[0].E == float(np.float32(58e9))
+    assert type(s.tubes[1].G) is float and s.tubes[1].G == 21.5e9
+    assert all(type(v) is float for v in s.actuation.rotation + s.load.tip_force)
+    # direct construction stores floats too (no float32 arithmetic downstream)
+    t = Scene((dataclasses.replace(s.tubes[0], E=np.float32(6e10)), s.tubes[1]), s.actuation)
+    assert type(t.tubes[0].E) is float
+    for bad in (np.array([[0.0, 1.0]]), 1j, torch.tensor([0.0, 1.0])):
+        with pytest.raises(SceneError, match=r"actuation\.rotation"):
+            Scene.from_dict(_set(base(), ("actuation", "rotation", 1), bad))
+
+
+def test_with_actuation_and_with_load_refuse_what_from_dict_refuses():
+    """with_actuation used float(v) on anything: '0.1' (a string) and bfloat16 tensors passed."""
+    import numpy as np
+    import torch
+    s = Scene.from_dict(base())
+    with pytest.raises(SceneError, match=r"actuation\.insertion\[0\] must be a number"):
+        s.with_actuation(insertion=["0.1", "0.2"])
+    with pytest.raises(SceneError, match=r"actuation\.rotation\[0\].*precision"):
+        s.with_actuation(rotation=torch.zeros(2, dtype=torch.bfloat16))
+    with pytest.raises(SceneError, match=r"load\.tip_force\[1\] must be a number"):
+        s.with_load(tip_force=[0.0, True, 0.0])
+    with pytest.raises(SceneError, match=r"load\.tip_moment must have 3 entries"):
+        s.with_load(tip_moment=[0.0, 0.0])
+    t = s.with_actuation(rotation=np.array([0.0, 0.5]), insertion=torch.tensor([0.1, 0.21],
+                                                                          dtype=torch.float64))
+    assert t.actuation.rotation == (0.0, 0.5) and t.actuation.insertion == (0.1, 0.21)
+
+
+@pytest.mark.parametrize("value", [0, 0.0, False, [], "", [0, 0, 0], "none"],
+                         ids=["0", "0.0", "false", "[]", "empty-str", "list", "str"])
+@pytest.mark.parametrize(("path", "field"), [
+    (("load",), "load"),
+    (("tubes", 0, "precurvature"), "tubes[0].precurvature"),
+    (("tubes", 1, "precurvature"), "tubes[1].precurvature"),
+])
+def test_falsy_or_scalar_sections_are_not_read_as_absent(path, field, value):
+    """`precurvature: 0` and `load: 0` used to be read as absent (``x or {}``)."""
+    msg = _raises(_set(base(), path, value), field)
+    assert "must be a mapping" in msg
+
+
+@pytest.mark.parametrize("value", [None, {}])
+def test_null_or_empty_sections_mean_none(value):
+    d = _set(_set(base(), ("load",), value), ("tubes", 0, "precurvature"), value)
+    s = Scene.from_dict(d)
+    assert s.load.is_zero and not s.tubes[0].is_precurved and s.tubes[1].is_precurved
+
+
+def test_yaml_files_with_zero_sections(tmp_path):
+    text = YAML_TEXT.replace("precurvature: {x: [0.0], y: [9.9], z: [0.0]}", "precurvature: 0")
+    (tmp_path / "pc0.yaml").write_text(text)
+    with pytest.raises(SceneError, match=r"tubes\[0\]\.precurvature must be a mapping"):
+        load_scene(tmp_path / "pc0.yaml")
+    text = YAML_TEXT.split("load:")[0] + "load: 0\n"
+    (tmp_path / "load0.yaml").write_text(text)
+    with pytest.raises(SceneError, match="load must be a mapping"):
+        load_scene(tmp_path / "load0.yaml")
+    (tmp_path / "load_empty.yaml").write_text(YAML_TEXT.split("load:")[0] + "load:\n")
+    assert load_scene(tmp_path / "load_empty.yaml").load.is_zero
+
+
+@pytest.mark.parametrize(("override", "field"), [
+    ("load.tip_force[1]=0.1", "load.tip_force"),
+    ("load.tip_moment[0]=1e-3", "load.tip_moment"),
+    ("tubes[1].precurvature.x[0]=0.5", "tubes[1].precurvature.x"),
+    ("tubes[0].precurvature.z[2]=1", "tubes[0].precurvature.z"),
+])
+def test_set_an_element_of_an_absent_list(override, field):
+    """Used to build ``{1: 0.1}`` and report "got {1: 0.1}"; now says what is missing."""
+    with pytest.raises(SceneError) as info:
+        load_scene("renda2021_fig3", [override])
+    msg = str(info.value)
+    assert f"{field} is not in the scene" in msg and f"--set {field}=" in msg
+    assert "{" not in msg.split(":", 1)[1]
+
+
+def test_set_an_index_out_of_range_says_the_size():
+    with pytest.raises(SceneError, match=r"actuation\.rotation\[5\].*2 entries"):
+        load_scene("renda2021_fig3", ["actuation.rotation[5]=1"])
+
+
+@pytest.mark.parametrize(("content", "fragment"), [
+    (bytes(range(256)), "not a UTF-8 text file"),
+    (b"\x89PNG\r\n\x1a\n\x00\x00\x00\rIHDR", "not a UTF-8 text file"),
+    (b"tubes: []\x00\x00", "NUL bytes"),
+    (b"\xff\xfe\x00t\x00u", "not a UTF-8 text file"),
+])
+@pytest.mark.parametrize("name", ["scene.yaml", "scene.json", "noext"])
+def test_binary_scene_files_name_the_file(tmp_path, content, fragment, name):
+    path = tmp_path / name
+    path.write_bytes(content)
+    with pytest.raises(SceneError) as info:
+        load_scene(path)
+    assert str(path) in str(info.value) and fragment in str(info.value)
+
+
+@pytest.mark.parametrize("source", ["", " ", "\t"])
+def test_empty_scene_name(source):
+    with pytest.raises(SceneError, match="scene name is empty.*renda2021_fig3"):
+        load_scene(source)
+
+
+def test_directory_as_scene(tmp_path):
+    with pytest.raises(SceneError, match=f"{tmp_path.name}.* is a directory"):
+        load_scene(tmp_path)
+    with pytest.raises(SceneError, match=r"scene must be a file path.*int"):
+        load_scene(3)  # type: ignore[arg-type]

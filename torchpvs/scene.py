@@ -18,6 +18,7 @@ from __future__ import annotations
 import dataclasses
 import json
 import math
+import numbers
 import re
 from collections.abc import Mapping, Sequence
 from dataclasses import dataclass, field
@@ -42,18 +43,59 @@ class SceneError(ValueError):
     """A scene, actuation or load breaks a rule. The message names the field and the rule."""
 
 
+_HALF_DTYPES = ("float16", "bfloat16", "half")
+
+
 def _finite(value: Any, where: str) -> float:
-    if isinstance(value, bool) or not isinstance(value, (int, float)):
-        raise SceneError(f"{where} must be a number, got {value!r}")
-    value = float(value)
+    """``value`` as a finite Python float, or a :class:`SceneError` naming ``where``.
+
+    Numbers are Python ``int``/``float`` (not ``bool``) and numpy/torch real scalars of at
+    least single precision. Refused, each with its rule: strings (no parsing), bools,
+    half-precision scalars (``float16``/``bfloat16`` keep about 3 significant digits, so a
+    modulus or a diameter would silently lose accuracy), complex values, integers beyond the
+    float range (a 400-digit ``E`` is a typo, not a modulus) and NaN/inf.
+    """
+    dtype = getattr(value, "dtype", None)
+    if dtype is not None and not isinstance(value, (int, float)):
+        name = str(dtype).removeprefix("torch.")
+        if name in _HALF_DTYPES:
+            raise SceneError(f"{where} must be a number of at least single precision, got a "
+                             f"{name} value (half precision keeps ~3 digits; pass a Python "
+                             "float or float32/float64)")
+        shape = tuple(getattr(value, "shape", ()))
+        if shape != () or not hasattr(value, "item"):
+            raise SceneError(f"{where} must be a number, got {type(value).__name__} of shape "
+                             f"{shape}")
+        if "complex" in name or not any(k in name for k in ("float", "int")) or "bool" in name:
+            raise SceneError(f"{where} must be a real number, got a {name} value {value!r}")
+        value = value.item()
+    if isinstance(value, bool) or not isinstance(value, numbers.Real):
+        raise SceneError(f"{where} must be a number, got {_short_repr(value)}")
+    try:
+        value = float(value)
+    except OverflowError:
+        digits = (int(int(value).bit_length() * math.log10(2)) + 1
+                  if isinstance(value, numbers.Integral) else None)
+        size = f"an integer of about {digits} digits" if digits else _short_repr(value)
+        raise SceneError(f"{where} must be a finite number within the float range "
+                         f"(|x| < 1.8e308), got {size}") from None
     if not math.isfinite(value):
         raise SceneError(f"{where} must be finite, got {value!r}")
     return value
 
 
+def _short_repr(value: Any, limit: int = 60) -> str:
+    text = repr(value)
+    return text if len(text) <= limit else f"{text[:limit]}... ({len(text)} characters)"
+
+
 def _vector(values: Any, n: int | None, where: str, per: str = "one per tube") -> tuple[float, ...]:
+    """A list (or 1-D numpy array / torch tensor) of numbers, each checked by :func:`_finite`."""
+    if getattr(values, "ndim", None) == 1 and hasattr(values, "tolist") \
+            and not isinstance(values, Sequence):
+        values = list(values)  # elements keep their dtype: _finite refuses half precision
     if isinstance(values, (str, bytes)) or not isinstance(values, Sequence):
-        raise SceneError(f"{where} must be a list of numbers, got {values!r}")
+        raise SceneError(f"{where} must be a list of numbers, got {_short_repr(values)}")
     if n is not None and len(values) != n:
         raise SceneError(f"{where} must have {n} entries ({per}), got {len(values)}")
     return tuple(_finite(v, f"{where}[{i}]") for i, v in enumerate(values))
@@ -171,11 +213,13 @@ class Scene:
 
     def with_actuation(self, insertion: Sequence[float] | None = None,
                        rotation: Sequence[float] | None = None) -> Scene:
-        """A copy with new insertions and/or rotations (validated)."""
+        """A copy with new insertions and/or rotations (validated: numbers only, no strings,
+        no half precision; numpy arrays and torch tensors of one dimension are accepted)."""
+        n = self.n_tubes
         act = Actuation(
-            tuple(float(v) for v in insertion) if insertion is not None
+            _vector(insertion, n, "actuation.insertion") if insertion is not None
             else self.actuation.insertion,
-            tuple(float(v) for v in rotation) if rotation is not None
+            _vector(rotation, n, "actuation.rotation") if rotation is not None
             else self.actuation.rotation,
         )
         return dataclasses.replace(self, actuation=act)
@@ -184,8 +228,9 @@ class Scene:
                   tip_moment: Sequence[float] | None = None) -> Scene:
         """A copy with a new tip force and/or moment (validated)."""
         load = Load(
-            tuple(float(v) for v in tip_force) if tip_force is not None else self.load.tip_force,
-            tuple(float(v) for v in tip_moment) if tip_moment is not None
+            _vector(tip_force, 3, "load.tip_force", "x, y, z") if tip_force is not None
+            else self.load.tip_force,
+            _vector(tip_moment, 3, "load.tip_moment", "x, y, z") if tip_moment is not None
             else self.load.tip_moment,
         )
         return dataclasses.replace(self, load=load)
@@ -198,7 +243,14 @@ class Scene:
     # -- (de)serialisation -------------------------------------------------------------------
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> Scene:
-        """Build and validate a scene from the mapping of conventions.md."""
+        """Build and validate a scene from the mapping of conventions.md.
+
+        The optional sections ``load`` and ``tubes[i].precurvature`` mean "none" (zero load,
+        a straight tube) only when absent or ``null`` (an empty ``load:`` in YAML) or an empty
+        mapping ``{}``. Any other non-mapping value, ``0`` included, is a :class:`SceneError`:
+        ``precurvature: 0`` might mean a straight tube or a forgotten list, and ``load: 0``
+        a zero load or a missing vector, so neither is guessed.
+        """
         _check_keys(data, _SCENE_KEYS, "")
         if "tubes" not in data:
             raise SceneError("tubes is required: a list of at least one tube, outermost first")
@@ -219,7 +271,8 @@ class Scene:
             _vector(act_raw["insertion"], n, "actuation.insertion"),
             _vector(act_raw["rotation"], n, "actuation.rotation"),
         )
-        load_raw = data.get("load") or {}
+        load_raw = _optional_mapping(data, "load", "load",
+                                     "tip_force and/or tip_moment, 3 entries each")
         _check_keys(load_raw, _LOAD_KEYS, "load")
         load = Load(
             _vector(load_raw.get("tip_force", (0.0, 0.0, 0.0)), 3, "load.tip_force", "x, y, z"),
@@ -246,13 +299,27 @@ class Scene:
         }
 
 
+def _optional_mapping(data: Mapping[str, Any], key: str, where: str, keys: str) -> Any:
+    """An optional section: absent or ``null`` means empty (no load, no precurvature); any
+    other value must be a mapping. ``0``, ``[]``, ``""`` or ``false`` are refused rather than
+    read as absent: a ``0`` could as well be meant as a zero coefficient, so it is not guessed."""
+    value = data.get(key)
+    if value is None:
+        return {}
+    if not isinstance(value, Mapping):
+        raise SceneError(f"{where} must be a mapping ({keys}) or absent/null, got "
+                         f"{_short_repr(value)}; omit it (or write {{}}) for none")
+    return value
+
+
 def _tube_from_dict(raw: Any, i: int) -> Tube:
     where = f"tubes[{i}]"
     _check_keys(raw, _TUBE_KEYS, where)
     for key in ("E", "G", "inner_diameter", "outer_diameter", "straight_length", "curved_length"):
         if key not in raw:
             raise SceneError(f"{where}.{key} is required")
-    pc_raw = raw.get("precurvature") or {}
+    pc_raw = _optional_mapping(raw, "precurvature", f"{where}.precurvature",
+                               "x, y and/or z, each a list of coefficients")
     _check_keys(pc_raw, ("x", "y", "z"), f"{where}.precurvature")
     precurvature = tuple(_vector(pc_raw.get(ax, ()), None, f"{where}.precurvature.{ax}")
                          for ax in "xyz")
@@ -271,17 +338,31 @@ def _tube_from_dict(raw: Any, i: int) -> Tube:
     )
 
 
+_TUBE_NUMBERS = ("E", "G", "inner_diameter", "outer_diameter", "straight_length",
+                 "curved_length")
+
+
 def _validate(scene: Scene) -> None:
+    """Check every rule; store the numbers as Python floats (a lossless conversion of ints and
+    numpy/torch scalars of single or double precision; anything else raises)."""
     if not isinstance(scene.tubes, tuple) or len(scene.tubes) == 0:
         raise SceneError("tubes must be a non-empty tuple of Tube, outermost first")
     n = len(scene.tubes)
+    tubes: list[Tube] = []
     for i, t in enumerate(scene.tubes):
         w = f"tubes[{i}]"
         if not isinstance(t, Tube):
             raise SceneError(f"{w} must be a Tube, got {type(t).__name__}")
-        for key in ("E", "G", "inner_diameter", "outer_diameter", "straight_length",
-                    "curved_length"):
-            _finite(getattr(t, key), f"{w}.{key}")
+        nums = {key: _finite(getattr(t, key), f"{w}.{key}") for key in _TUBE_NUMBERS}
+        pc = t.precurvature
+        if isinstance(pc, (str, bytes)) or not isinstance(pc, Sequence) or len(pc) != 3:
+            raise SceneError(f"{w}.precurvature must have the axes x, y, z")
+        pc = tuple(_vector(c, None, f"{w}.precurvature.{ax}") for ax, c in zip("xyz", pc,
+                                                                               strict=True))
+        if not isinstance(t.name, str):
+            raise SceneError(f"{w}.name must be a string, got {_short_repr(t.name)}")
+        t = dataclasses.replace(t, **nums, precurvature=pc)  # type: ignore[arg-type]
+        tubes.append(t)
         if t.E <= 0:
             raise SceneError(f"{w}.E ({t.E:g} Pa) must be > 0")
         if t.G <= 0:
@@ -297,27 +378,18 @@ def _validate(scene: Scene) -> None:
             raise SceneError(f"{w}.curved_length ({t.curved_length:g} m) must be >= 0")
         if t.length <= 0:
             raise SceneError(f"{w}: straight_length + curved_length must be > 0")
-        if len(t.precurvature) != 3:
-            raise SceneError(f"{w}.precurvature must have the axes x, y, z")
-        for ax, coeffs in zip("xyz", t.precurvature, strict=False):
-            for k, c in enumerate(coeffs):
-                _finite(c, f"{w}.precurvature.{ax}[{k}]")
         if i > 0:
-            outer = scene.tubes[i - 1]
+            outer = tubes[i - 1]
             if t.outer_diameter > outer.inner_diameter:
                 raise SceneError(
                     f"{w}.outer_diameter ({t.outer_diameter:g} m) must not exceed "
                     f"tubes[{i - 1}].inner_diameter ({outer.inner_diameter:g} m)")
+    object.__setattr__(scene, "tubes", tuple(tubes))
     act = scene.actuation
     if not isinstance(act, Actuation):
         raise SceneError("actuation must be an Actuation")
-    for key in ("insertion", "rotation"):
-        vals = getattr(act, key)
-        if len(vals) != n:
-            raise SceneError(f"actuation.{key} must have {n} entries (one per tube), "
-                             f"got {len(vals)}")
-        for j, v in enumerate(vals):
-            _finite(v, f"actuation.{key}[{j}]")
+    act = Actuation(*(_vector(getattr(act, key), n, f"actuation.{key}")
+                      for key in ("insertion", "rotation")))
     for j, d in enumerate(act.insertion):
         if d < 0:
             raise SceneError(f"actuation.insertion[{j}] ({d:g} m) must be >= 0 "
@@ -326,15 +398,13 @@ def _validate(scene: Scene) -> None:
             raise SceneError(
                 f"actuation.insertion[{j}] ({d:g} m) must be >= actuation.insertion[{j - 1}] "
                 f"({act.insertion[j - 1]:g} m): an inner tube's base lies behind the outer one's")
+    object.__setattr__(scene, "actuation", act)
     load = scene.load
     if not isinstance(load, Load):
         raise SceneError("load must be a Load")
-    for key in ("tip_force", "tip_moment"):
-        vals = getattr(load, key)
-        if len(vals) != 3:
-            raise SceneError(f"load.{key} must have 3 entries (x, y, z), got {len(vals)}")
-        for k, v in enumerate(vals):
-            _finite(v, f"load.{key}[{k}]")
+    load = Load(*(_vector(getattr(load, key), 3, f"load.{key}", "x, y, z")
+                  for key in ("tip_force", "tip_moment")))
+    object.__setattr__(scene, "load", load)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -376,6 +446,8 @@ def _parse_text(text: str, source: str) -> Any:
         return _yaml_load(text)
     except (json.JSONDecodeError, yaml.YAMLError) as exc:
         raise SceneError(f"{source}: not valid YAML/JSON: {exc}") from None
+    except ValueError as exc:  # e.g. an integer beyond Python's digit limit for int()
+        raise SceneError(f"{source}: cannot read a value: {_first_line(exc)}") from None
 
 
 def apply_overrides(data: dict[str, Any], overrides: Sequence[str]) -> dict[str, Any]:
@@ -390,9 +462,9 @@ def apply_overrides(data: dict[str, Any], overrides: Sequence[str]) -> dict[str,
         key, raw = item.split("=", 1)
         try:
             value = _yaml_load(raw)
-        except yaml.YAMLError as exc:
-            raise SceneError(f"--set {item!r}: value is not valid YAML ({_first_line(exc)})") \
-                from None
+        except (yaml.YAMLError, ValueError) as exc:
+            raise SceneError(f"--set {_short_repr(item)}: value is not valid YAML "
+                             f"({_first_line(exc)})") from None
         parts: list[str | int] = []
         for token in key.strip().split("."):
             m = re.fullmatch(r"([A-Za-z_][A-Za-z_0-9]*)((\[\d+\])*)", token)
@@ -401,23 +473,66 @@ def apply_overrides(data: dict[str, Any], overrides: Sequence[str]) -> dict[str,
             parts.append(m.group(1))
             parts.extend(int(i) for i in re.findall(r"\[(\d+)\]", m.group(2)))
         node: Any = data
-        for p in parts[:-1]:
+        for k, p in enumerate(parts[:-1]):
             try:
-                if isinstance(p, str) and isinstance(node, dict) and p not in node:
+                if isinstance(p, str) and isinstance(node, dict) and node.get(p) is None:
+                    nxt = parts[k + 1]
+                    if isinstance(nxt, int):
+                        # an absent (or null) list: the documented default is "none" (a zero
+                        # load, no coefficients), which has no element [nxt] to set
+                        field_name = _field_name(parts[:k + 1])
+                        raise SceneError(
+                            f"--set {_short_repr(item)}: {field_name} is not in the scene, so "
+                            f"its element [{nxt}] cannot be set; set the whole list, e.g. "
+                            f"--set {field_name}=[...]")
                     node[p] = {}
                 node = node[p]
             except (KeyError, IndexError, TypeError):
-                raise SceneError(f"--set {item!r}: no such field {key!r}") from None
+                raise SceneError(f"--set {_short_repr(item)}: no such field {key!r}") from None
         last = parts[-1]
         try:
             if isinstance(node, list):
                 node[last] = value  # type: ignore[index]
-            elif isinstance(node, dict):
+            elif isinstance(node, dict) and isinstance(last, str):
                 node[last] = value
             else:
                 raise TypeError
         except (IndexError, TypeError):
-            raise SceneError(f"--set {item!r}: no such field {key!r}") from None
+            size = f" (it has {len(node)} entries)" if isinstance(node, list) else ""
+            raise SceneError(f"--set {_short_repr(item)}: no such field {key!r}{size}") \
+                from None
+    return data
+
+
+def _field_name(parts: Sequence[str | int]) -> str:
+    out = ""
+    for p in parts:
+        out += f"[{p}]" if isinstance(p, int) else (f".{p}" if out else p)
+    return out
+
+
+def _read_file(path: Path, shown: str) -> Any:
+    """Parse a scene file; every failure is a SceneError that names the file."""
+    try:
+        raw = path.read_bytes()
+    except IsADirectoryError:
+        raise SceneError(f"scene file {shown!r} is a directory, not a YAML/JSON file") from None
+    except OSError as exc:
+        raise SceneError(f"scene file {shown!r} cannot be read: "
+                         f"{exc.strerror or _first_line(exc)}") from None
+    try:
+        text = raw.decode("utf-8")
+    except UnicodeDecodeError as exc:
+        raise SceneError(f"scene file {shown!r} is not a UTF-8 text file (byte "
+                         f"0x{raw[exc.start]:02x} at offset {exc.start}); a scene is YAML or "
+                         "JSON text") from None
+    if "\x00" in text:
+        raise SceneError(f"scene file {shown!r} contains NUL bytes: it is a binary file, not "
+                         "YAML or JSON text")
+    data = _parse_text(text, shown)
+    if not isinstance(data, Mapping):
+        raise SceneError(f"scene file {shown!r}: the scene must be a mapping with tubes, "
+                         f"actuation and load, got {type(data).__name__}")
     return data
 
 
@@ -437,12 +552,18 @@ def load_scene(source: str | Path | Mapping[str, Any] | Scene,
     elif isinstance(source, Mapping):
         data = dict(source)
     else:
+        if not isinstance(source, (str, Path)):
+            raise SceneError(f"scene must be a file path, a built-in name, a mapping or a "
+                             f"Scene, got {type(source).__name__}")
         text_source = str(source)
+        if not text_source.strip():
+            raise SceneError(f"scene name is empty: give a scene file (.yaml, .yml, .json) or "
+                             f"a built-in name ({', '.join(builtin_scenes())})")
         path = Path(text_source)
         if path.suffix in (".yaml", ".yml", ".json") or path.exists():
             if not path.exists():
                 raise SceneError(f"scene file {text_source!r} does not exist")
-            data = _parse_text(path.read_text(), path.name)
+            data = _read_file(path, text_source)
         else:
             names = builtin_scenes()
             if text_source not in names:
