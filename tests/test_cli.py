@@ -526,3 +526,105 @@ def test_plot_backbone_artists():
     _, ax2 = plot_backbone(s.with_actuation(insertion=[0.0, 0.1]), pts, ax=fig.add_subplot(
         122, projection="3d"), show_guide=False)
     assert not any(ln.get_label().startswith("guide") for ln in ax2.lines)
+
+
+# ---------------------------------------------------------------------------------------------
+# Issue 14, items 5 and 11: internal exceptions and noise on the command line
+
+BIG = "9" * 400
+
+
+@pytest.mark.usefixtures("no_solvers")
+@pytest.mark.parametrize("cmd", COMMANDS, ids=["solve", "plot"])
+@pytest.mark.parametrize(("override", "fragments"), [
+    (f"tubes[0].E={BIG}", ["tubes[0].E", "float range", "401 digits"]),
+    (f"tubes[1].G=-{BIG}", ["tubes[1].G", "float range"]),
+    (f"actuation.rotation[1]={BIG}", ["actuation.rotation[1]", "float range"]),
+    ("tubes[0].E=" + "9" * 5000, ["tubes[0].E", "4300 digits"]),  # beyond int()'s limit
+    ("load.tip_force[1]=0.1", ["load.tip_force is not in the scene", "--set load.tip_force="]),
+    ("tubes[0].precurvature.x[0]=1", ["tubes[0].precurvature.x is not in the scene"]),
+])
+def test_set_values_that_used_to_crash_or_confuse(capsys, cmd, override, fragments):
+    code, out, err = run(capsys, cmd[0], "renda2021_fig3", "--set", override, *cmd[1:])
+    assert code == 2 and out == ""
+    one_line(err)
+    assert len(err) < 600  # a 5000-digit value is not echoed whole
+    for f in fragments:
+        assert f in err
+
+
+@pytest.mark.usefixtures("no_solvers")
+@pytest.mark.parametrize("suffix", [".yaml", ".json"])
+def test_huge_integer_in_a_scene_file_exits_2(capsys, tmp_path, suffix):
+    data = load_scene("renda2021_fig3").to_dict()
+    data["tubes"][0]["E"] = int(BIG)
+    path = tmp_path / f"big{suffix}"
+    path.write_text(json.dumps(data) if suffix == ".json" else yaml.safe_dump(data))
+    code, out, err = run(capsys, "solve", str(path), "--json")
+    assert code == 2 and out == ""
+    assert "tubes[0].E" in one_line(err) and "float range" in err
+
+
+@pytest.mark.usefixtures("no_solvers")
+@pytest.mark.parametrize(("scene", "content", "fragments"), [
+    ("bin.yaml", bytes(range(256)), ["bin.yaml", "not a UTF-8 text file"]),
+    ("bin.json", b"\x00\x01\x02\x03", ["bin.json", "NUL bytes"]),
+    ("", None, ["scene name is empty", "renda2021_fig3"]),
+    (" ", None, ["scene name is empty"]),
+    (".", None, ["'.' is a directory"]),
+])
+def test_unusable_scene_paths_name_the_file(capsys, tmp_path, monkeypatch, scene, content,
+                                            fragments):
+    monkeypatch.chdir(tmp_path)
+    if content is not None:
+        (tmp_path / scene).write_bytes(content)
+    code, out, err = run(capsys, "solve", scene, "--json")
+    assert code == 2 and out == ""
+    one_line(err)
+    for f in fragments:
+        assert f in err
+
+
+def test_torch_internal_deprecations_are_not_shown_but_solver_warnings_are(capsys, fakes,
+                                                                           monkeypatch):
+    """torch's first forward-mode AD call imports torch._decomp.decompositions_for_jvp, whose
+    calls of the deprecated torch.jit.script each warn from torch.jit._script: the CLI used to
+    re-emit all 18 (simplefilter("always")). torchpvs's own warnings, deprecations included,
+    still reach stderr, one line each."""
+    import warnings
+
+    fake_solver = sys.modules["torchpvs.solver"]  # the fake installed by ``fakes``
+    real = fake_solver.solve
+
+    def noisy(scene):
+        for module in ("torch.jit._script", "torch"):
+            warnings.warn_explicit("`torch.jit.script` is deprecated.", DeprecationWarning,
+                                   "_script.py", 1488, module=module)
+        warnings.warn_explicit("torch pending", PendingDeprecationWarning, "x.py", 1,
+                               module="torch._decomp")
+        warnings.warn_explicit("option X is deprecated", DeprecationWarning, "solver.py", 1,
+                               module="torchpvs.solver")
+        warnings.warn("1 of 1 element(s) did not converge", RuntimeWarning, stacklevel=1)
+        return real(scene)
+
+    monkeypatch.setattr(fake_solver, "solve", noisy)
+    for _ in range(2):  # shown again by a second solve in the same process
+        code, out, err = run(capsys, "solve", "renda2021_fig3", "--json")
+        assert code == 0
+        lines = err.splitlines()
+        assert lines == ["torchpvs solve: warning: option X is deprecated",
+                         "torchpvs solve: warning: 1 of 1 element(s) did not converge"]
+
+
+def test_loaded_real_solve_prints_nothing_on_stderr(tmp_path):
+    """A loaded solve in a fresh interpreter (where torch's jvp decompositions are first
+    loaded) exits 0 with nothing on stderr."""
+    _real("torchpvs.solver", "solve")
+    proc = subprocess.run(
+        [sys.executable, "-m", "torchpvs", "solve", "renda2021_fig3", "--json",
+         "--set", "load.tip_force=[0, 0.1, 0]"],
+        cwd=tmp_path, capture_output=True, text=True, timeout=300,
+        env={**os.environ, "PYTHONPATH": str(ROOT), "MPLBACKEND": "Agg", "OMP_NUM_THREADS": "1"})
+    assert proc.returncode == 0, proc.stderr
+    assert proc.stderr == ""
+    assert strict_json(proc.stdout)["converged"] is True

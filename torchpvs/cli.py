@@ -110,12 +110,19 @@ def _load(source: str, overrides: Sequence[str]) -> Any:
         _, _, raw = item.partition("=")
         try:
             yaml.safe_load(raw)
-        except yaml.YAMLError:
-            raise CLIError(f"--set {item!r}: cannot parse the value {raw!r} (YAML)") from None
+        except (yaml.YAMLError, ValueError) as exc:  # ValueError: int() digit limit
+            raise CLIError(f"--set {_short(item)}: cannot parse the value {_short(raw)} "
+                           f"(YAML: {_one_line(exc)[:200]})") from None
     try:
         return load_scene(source, list(overrides))
     except (ValueError, OSError, yaml.YAMLError) as exc:  # SceneError is a ValueError
         raise CLIError(_one_line(exc)) from None
+
+
+def _short(text: str, limit: int = 60) -> str:
+    """``repr(text)``, cut to ``limit`` characters (a 5000-digit value is not echoed whole)."""
+    r = repr(text)
+    return r if len(r) <= limit else f"{r[:limit]}... ({len(text)} characters)"
 
 
 def _solve(scene: Any, model: str, prog: str) -> Any:
@@ -132,7 +139,17 @@ def _solve(scene: Any, model: str, prog: str) -> Any:
             raise CLIError("--model pvs is not available yet") from None
     with warnings.catch_warnings(record=True) as caught, \
             contextlib.redirect_stdout(sys.stderr):
+        # Every warning of a solve is shown, one line each, even when the same warning was
+        # shown by an earlier solve in this process ("always": the default "once per
+        # location" would hide the second batch's non-convergence). Not shown: deprecation
+        # warnings that torch raises about its own internals, which a CLI user cannot act on.
+        # torch's first forward-mode AD call (torch.func.jvp, used for the loaded
+        # equilibria) imports torch._decomp.decompositions_for_jvp, which calls the
+        # deprecated torch.jit.script once per decomposition (18 lines per loaded solve).
         warnings.simplefilter("always")
+        warnings.filterwarnings("ignore", category=DeprecationWarning, module=r"torch(\.|$)")
+        warnings.filterwarnings("ignore", category=PendingDeprecationWarning,
+                                module=r"torch(\.|$)")
         try:
             sol = solver(scene)
         except ValueError as exc:  # the solver rejects the scene (SceneError included)
