@@ -20,6 +20,13 @@ on the motion per substep; every substep is ONE batched solver call warm-started
 Carriages stop inelastically at their stroke limits (:meth:`envs.robots.Robot.project`): the
 position is projected and the velocity into the stop zeroed.
 
+Energy: in the overdamped model every substep must lower ``phi(x) = U*(x) - tau . x`` (the
+flow is a gradient flow of ``phi``) by Armijo's sufficient-decrease test; the linearly implicit
+step passes it wherever ``U*`` is smooth, and a step that overshoots a kink of ``U*`` (O(h)
+chatter) is retried halved, using the energy the substep's solve already returned (no extra
+solver call when the first step is accepted). The second-order model is not tested this way:
+with inertia ``phi`` alone need not fall.
+
 Failures: a substep whose solve does not converge is retried for those robots with the step
 halved (up to ``max_retries`` times); if it still fails the robot keeps its last valid state and
 is flagged ``solver_failure``. A snap — the equilibrium losing stability, the torsion releasing
@@ -104,6 +111,9 @@ class RobotBatch:
     """
 
     def __init__(self, robot: Robot, model: CarriageModel, batch_size: int):
+        if isinstance(batch_size, bool) or not isinstance(batch_size, (int, np.integer)) \
+                or batch_size < 1:
+            raise ValueError(f"batch_size must be an integer >= 1, got {batch_size!r}")
         self.robot, self.model, self.B = robot, model, batch_size
         N = robot.n_tubes
         self.N = N
@@ -120,6 +130,10 @@ class RobotBatch:
         self.K = np.zeros((batch_size, 2 * N, 2 * N))
         self.tip = np.zeros((batch_size, 3))
         self.margin = np.zeros(batch_size)
+        self.energy = np.zeros(batch_size)          # U*(x) [J], for the step acceptance
+        self._parked = np.zeros(batch_size, dtype=bool)   # rejected at a kink (_advance)
+        self._park_x = np.zeros((batch_size, 2 * N))
+        self._park_try = np.zeros((batch_size, 2 * N))
         self.twist = np.zeros((batch_size, max(N - 1, 0)))
         self.at_lower = np.zeros((batch_size, N), dtype=bool)
         self.at_upper = np.zeros((batch_size, N), dtype=bool)
@@ -137,7 +151,7 @@ class RobotBatch:
         ok = eq.converged.numpy() & np.isfinite(g).all(-1) & np.isfinite(
             eq.tip_position.numpy()).all(-1)
         return (g, eq.tip_position.numpy(), eq.min_stiffness_eigenvalue.numpy(),
-                eq.relative_rotation_at_outer_tip.numpy(), ok)
+                eq.relative_rotation_at_outer_tip.numpy(), eq.energy.detach().numpy(), ok)
 
     def set_state(self, idx: np.ndarray, x: np.ndarray, eq=None, rows=None) -> np.ndarray:
         """Place robots ``idx`` at ``x (len(idx), 2N)`` at rest; solve unless ``eq`` (an
@@ -146,13 +160,14 @@ class RobotBatch:
         x = np.concatenate([D, x[:, self.N:]], -1)
         if eq is None:
             eq, rows = self._solve(x, None), np.arange(len(idx))
-        g, tip, margin, twist, ok = self._unpack(eq)
+        g, tip, margin, twist, energy, ok = self._unpack(eq)
         q = eq.q.detach()
         if self.q is None or self.q.shape[-1] != q.shape[-1]:
             self.q = torch.zeros(self.B, q.shape[-1], dtype=q.dtype)
         self.x[idx], self.v[idx] = x, 0.0
         self.g[idx], self.tip[idx], self.margin[idx] = g[rows], tip[rows], margin[rows]
-        self.twist[idx] = twist[rows]
+        self.twist[idx], self.energy[idx] = twist[rows], energy[rows]
+        self._parked[idx] = False
         self.at_lower[idx], self.at_upper[idx] = lo, hi
         self.q[torch.as_tensor(idx)] = q[torch.as_tensor(rows)]
         self.K[idx] = self._stiffness_of(eq, rows)
@@ -186,8 +201,33 @@ class RobotBatch:
         tau = np.asarray(tau, dtype=np.float64)
         n = self.n_substeps(tau)
         h = self.model.control_period / n
+        accept = self._armijo(tau) if self.model.kind == "overdamped" else None
         return self._run(n, lambda idx, frac: self._implicit_step(tau, h[idx] * frac, idx),
-                         stiffness=True)
+                         stiffness=True, accept=accept)
+
+    def _armijo(self, tau: np.ndarray):
+        """Sufficient decrease of the overdamped flow's merit ``phi(x) = U*(x) - tau . x``:
+        ``b xdot = tau - g(x) = -grad phi`` is a gradient flow, so every substep must lower
+        ``phi``. The linearly implicit step does so wherever ``U*`` is smooth, but overshoots
+        at a kink of ``U*`` (a tube end crossing a straight-to-curved transition), where
+        ``phi`` could rise by O(h). A substep is accepted when (Armijo, c1 = 1e-4)
+
+            phi(x_new) <= phi(x) + c1 * min(0, grad phi(x) . (x_new - x)) + round-off,
+
+        with ``U*(x_new)`` from the substep's own solve: no extra solver call unless a step
+        is rejected; a rejected step is retried with the step halved (``max_retries``), and
+        a robot whose halved steps all fail stays where it is (``phi`` cannot rise)."""
+        c1 = 1e-4
+
+        def accept(idx, x_new, energy_new):
+            x0, g0, t = self.x[idx], self.g[idx], tau[idx]
+            phi0 = self.energy[idx] - (t * x0).sum(-1)
+            phi1 = energy_new - (t * x_new).sum(-1)
+            slope = ((g0 - t) * (x_new - x0)).sum(-1)
+            noise = 1e-12 * (np.abs(self.energy[idx]) + np.abs(t * x0).sum(-1)) + 1e-15
+            return phi1 <= phi0 + c1 * np.minimum(slope, 0.0) + noise
+
+        return accept
 
     def step_joint(self, dx: np.ndarray) -> dict[str, np.ndarray]:
         """Position-controlled carriages: move by ``dx (B, 2N)`` [m, rad] (projected onto the
@@ -199,7 +239,7 @@ class RobotBatch:
                          lambda idx, frac: (x0[idx] + frac * dx[idx], frac * dx[idx] / period),
                          stiffness=False)
 
-    def _run(self, n: np.ndarray, propose, stiffness: bool):
+    def _run(self, n: np.ndarray, propose, stiffness: bool, accept=None):
         failure = np.zeros(self.B, dtype=bool)
         snapped = np.zeros(self.B, dtype=bool)
         jump = np.zeros(self.B)
@@ -209,7 +249,7 @@ class RobotBatch:
             active = n > k
             tip0, x0, twist0 = self.tip.copy(), self.x.copy(), self.twist.copy()
             skip = failure | ~active
-            committed = self._advance(propose, skip)
+            committed = self._advance(propose, skip, accept)
             failure |= skip & active
             if committed is not None:
                 eq, idx, rows = committed
@@ -247,13 +287,20 @@ class RobotBatch:
             dx = h * v_new
         return x + dx, v_new
 
-    def _advance(self, propose, skip):
+    def _advance(self, propose, skip, accept=None):
         """One substep for the robots not in ``skip``: propose, project, solve; robots whose
-        solve fails retry from their last valid state with the step halved; those still failing
-        keep it and are flagged (``skip`` is updated in place)."""
+        solve fails, or whose step ``accept(idx, x_new, energy_new)`` rejects, retry from their
+        last valid state with the step halved (up to ``max_retries`` times). Robots whose solve
+        still fails keep their state and are flagged (``skip`` is updated in place); robots
+        whose step is still rejected keep their state unflagged, at rest (at a kink of
+        ``U*``). Such a robot is *parked*: while its state and its first proposal stay exactly
+        the same (same ``x``, ``tau``, stiffness), the solves and the verdict would repeat
+        bit for bit, so it is left at rest without solving again."""
         todo = np.flatnonzero(~skip)
         committed = None
         frac = 1.0
+        failed = np.zeros(0, dtype=bool)
+        first = np.full(self.x.shape, np.nan)
         for attempt in range(self.model.max_retries + 1):
             if len(todo) == 0:
                 break
@@ -261,22 +308,41 @@ class RobotBatch:
             D, lo, hi = self.robot.project(x_try[:, :self.N])
             x = np.concatenate([D, x_try[:, self.N:]], -1)
             v = v.copy()
+            if attempt == 0 and accept is not None:
+                same = (self._parked[todo] & (self._park_x[todo] == self.x[todo]).all(-1)
+                        & (self._park_try[todo] == x).all(-1))
+                self.v[todo[same]] = 0.0
+                todo, x, v, lo, hi = (a[~same] for a in (todo, x, v, lo, hi))
+                first[todo] = x
+                if len(todo) == 0:
+                    break
             # inelastic stops: no velocity into an active limit
             vD = v[:, :self.N]
             vD[lo & (vD < 0)] = 0.0
             vD[hi & (vD > 0)] = 0.0
             eq = self._solve(x, self.q[torch.as_tensor(todo)])
-            g, tip, margin, twist, ok = self._unpack(eq)
+            g, tip, margin, twist, energy, converged = self._unpack(eq)
+            ok = converged.copy()
+            if accept is not None and ok.any():
+                ok[ok] = accept(todo[ok], x[ok], energy[ok])
             good = np.flatnonzero(ok)
             idx = todo[good]
             self.x[idx], self.v[idx], self.g[idx] = x[good], v[good], g[good]
             self.tip[idx], self.margin[idx] = tip[good], margin[good]
-            self.twist[idx] = twist[good]
+            self.twist[idx], self.energy[idx] = twist[good], energy[good]
             self.at_lower[idx], self.at_upper[idx] = lo[good], hi[good]
             self.q[torch.as_tensor(idx)] = eq.q.detach()[torch.as_tensor(good)]
+            self._parked[idx] = False
             if attempt == 0:
                 committed = (eq, idx, good)
+            failed = ~converged[~ok]
             todo = todo[~ok]
             frac /= 2
-        skip[todo] = True
+        skip[todo[failed]] = True
+        rejected = todo[~failed]
+        if len(rejected):  # at a kink: at rest this substep, parked until something changes
+            self.v[rejected] = 0.0
+            self._parked[rejected] = True
+            self._park_x[rejected] = self.x[rejected]
+            self._park_try[rejected] = first[rejected]
         return committed

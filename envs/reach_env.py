@@ -34,6 +34,10 @@ class CTRReachEnv(gym.Env):
         **task: any :class:`~envs.task.ReachConfig` field (``reward``, ``tolerance``,
             ``snap_mode``, ...).
 
+    Actions must have the action space's shape ``(2N,)`` and be finite: anything else raises
+    ``ValueError`` (nothing is reshaped, NaN is never read as 0); finite entries outside
+    ``[-1, 1]`` saturate (``info["saturated"]``).
+
     ``info`` of every step holds ``is_success``, ``distance`` [m], ``snapped``,
     ``solver_failure``, ``tip_jump`` [m], ``substeps``, ``tau`` (the applied forces/torques
     [N, N·m]), ``effort`` [N²s], ``saturated`` (fraction of saturated action components),
@@ -76,7 +80,8 @@ class CTRReachEnv(gym.Env):
         return self._obs(), dict(self._last_info)
 
     def step(self, action):
-        reward, terminated, truncated, infos = self.task.step(np.asarray(action)[None])
+        a = self.task.check_action(action, self.action_space.shape)  # raises on NaN/shape
+        reward, terminated, truncated, infos = self.task.step(a[None])
         info = {k: (v[0].copy() if isinstance(v, np.ndarray) and v.ndim > 1 else
                     v[0].item() if isinstance(v, np.ndarray) else v) for k, v in infos.items()}
         self._last_info = info
@@ -97,13 +102,17 @@ class CTRReachEnv(gym.Env):
         self.task.set_tolerance(tolerance)
 
     def render(self):
+        """Gymnasium's render API: ``"rgb_array"`` returns the frame ``(H, W, 3)`` uint8;
+        ``"human"`` draws into a pyplot window (also done by every ``reset``/``step``) and
+        returns ``None``; without a render mode it warns and returns ``None``."""
         if self.render_mode is None:
             gym.logger.warn("render() called without a render_mode; pass render_mode= to make")
             return None
         from .render import ReachRenderer
         if self._renderer is None:
             self._renderer = ReachRenderer(self.robot, human=self.render_mode == "human")
-        return self._renderer.draw(self.task, 0)
+        frame = self._renderer.draw(self.task, 0)
+        return None if self.render_mode == "human" else frame
 
     def close(self):
         if self._renderer is not None:

@@ -63,8 +63,11 @@ class Robot:
             if not 0.0 <= lo <= hi:
                 raise ValueError(f"Robot.insertion_min[{j}] ({lo}) must satisfy "
                                  f"0 <= insertion_min <= insertion_max ({hi})")
-        if min(self.force_scale) <= 0 or min(self.torque_scale) <= 0:
-            raise ValueError("Robot.force_scale and Robot.torque_scale must be > 0")
+        for name in ("force_scale", "torque_scale"):
+            for j, v in enumerate(getattr(self, name)):
+                if not v > 0:
+                    raise ValueError(f"Robot.{name}[{j}] must be > 0 (the force/torque at "
+                                     f"action +-1), got {v!r}")
 
     @property
     def n_tubes(self) -> int:
@@ -191,17 +194,33 @@ def make_robot(robot: str | Robot | Scene, **overrides) -> Robot:
                      insertion_max=tuple(x - 5e-3 for x in L), force_scale=(1.0,) * n,
                      torque_scale=(0.01,) * n)
         f, t, m = measure_force_scales(base, n=128)
-        base = Robot(**{**base.__dict__, "force_scale": f, "torque_scale": t,
-                        "margin_scale": m})
+        base = Robot(**{**base.__dict__, "force_scale": _load_free(f, 1.0, 1e-9),
+                        "torque_scale": _load_free(t, 0.01, 1e-12), "margin_scale": m})
     if overrides:
         base = Robot(**{**base.__dict__, **overrides})
     return base
 
 
+def _load_free(scales: tuple[float, ...], default: float, floor: float) -> tuple[float, ...]:
+    """Scales for the actuators that carry no elastic load anywhere in the workspace (the base
+    rotation of a one-tube robot is a rigid rotation: ``dU*/dalpha = 0``; a straight tube's
+    insertion too): the largest measured scale of the same kind, else ``default``. With no
+    load the scale only sets units: the carriage moves at its target speed at action +-1
+    whatever the scale (the damping is ``scale / speed``). ``floor`` [N or N·m] is the
+    round-off level below which a measured scale counts as no load."""
+    loaded = [v for v in scales if v > floor]
+    fill = max(loaded) if loaded else default
+    return tuple(v if v > floor else fill for v in scales)
+
+
 def solve_batch(robot: Robot, x: np.ndarray, initial=None, options=None):
     """Solve the equilibria at actuator coordinates ``x (B, 2N)``; returns the Equilibrium."""
     N = robot.n_tubes
-    xt = torch.as_tensor(np.asarray(x), dtype=torch.float64)
+    x = np.asarray(x, dtype=np.float64)
+    if x.ndim != 2 or x.shape[0] < 1 or x.shape[1] != 2 * N:
+        raise ValueError(f"x must have shape (B, {2 * N}) with a batch size B >= 1 (insertions "
+                         f"then rotations of each of {N} tube(s)), got shape {x.shape}")
+    xt = torch.as_tensor(x, dtype=torch.float64)
     return torchpvs.solve(robot.scene, insertion=xt[:, :N], rotation=xt[:, N:],
                           options=options or ENV_SOLVER_OPTIONS, initial=initial)
 

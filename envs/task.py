@@ -60,7 +60,8 @@ class ReachConfig:
             ``"continue"`` (flag it in ``info`` and go on).
         snap_penalty: reward added at a snap (default ``-1 / (1 - 0.95) = -20``, the value of
             never reaching the goal under the sparse reward with gamma 0.95).
-        goal_min_distance: [m] goals are at least this far from the start tip.
+        goal_min_distance: [m] goals are at least this far from the start tip (finite, >= 0;
+            one that cannot be met raises, see :class:`ReachBatch`).
     """
 
     control: str = "force"
@@ -80,13 +81,28 @@ class ReachConfig:
         if self.snap_mode not in ("terminate", "continue"):
             raise ValueError(f"snap_mode must be 'terminate' or 'continue', got "
                              f"{self.snap_mode!r}")
-        if not (self.tolerance > 0 and math.isfinite(self.tolerance)):
+        if not (_real(self.tolerance) and self.tolerance > 0):
             raise ValueError(f"tolerance must be a positive length [m], got {self.tolerance!r}")
-        if not (self.dense_scale > 0):
-            raise ValueError(f"dense_scale must be > 0, got {self.dense_scale!r}")
-        if len(self.max_joint_step) != 2 or min(self.max_joint_step) <= 0:
-            raise ValueError(f"max_joint_step must be two positive numbers (m, rad), got "
-                             f"{self.max_joint_step!r}")
+        if not (_real(self.dense_scale) and self.dense_scale > 0):
+            raise ValueError(f"dense_scale must be a finite length > 0 [m], got "
+                             f"{self.dense_scale!r}")
+        steps = self.max_joint_step
+        if isinstance(steps, (str, bytes)) or not hasattr(steps, "__len__") or len(steps) != 2 \
+                or not all(_real(v) and v > 0 for v in steps):
+            raise ValueError(f"max_joint_step must be two finite numbers > 0 (m, rad), got "
+                             f"{steps!r}")
+        if not (_real(self.snap_penalty) and self.snap_penalty <= 0):
+            raise ValueError(f"snap_penalty must be a finite number <= 0 (a reward added at a "
+                             f"snap; > 0 would reward snapping), got {self.snap_penalty!r}")
+        if not (_real(self.goal_min_distance) and self.goal_min_distance >= 0):
+            raise ValueError(f"goal_min_distance must be a finite length >= 0 [m], got "
+                             f"{self.goal_min_distance!r}")
+
+
+def _real(v) -> bool:
+    """A finite real number (not a bool, not a string)."""
+    return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(
+        v, (bool, np.bool_)) and math.isfinite(v)
 
 
 def compute_reward(achieved_goal, desired_goal, tolerance: float, kind: str,
@@ -104,13 +120,23 @@ def compute_reward(achieved_goal, desired_goal, tolerance: float, kind: str,
 class ReachBatch:
     """``B`` reaching tasks on one :class:`~envs.dynamics.RobotBatch`.
 
+    Goals: the tip of a second stable equilibrium sampled like the start, redrawn up to
+    ``GOAL_DRAWS`` times while closer than ``config.goal_min_distance`` to the start tip; a
+    distance beyond ``2 x robot.reach`` raises at construction, one not met after the redraws
+    raises ``ValueError`` at reset (it is never silently relaxed).
+
     Randomness: one ``numpy.random.Generator`` per robot (``rngs``), so robot ``i`` of a batch
     seeded with ``seed`` behaves as a single environment seeded with the ``i``-th child of
     ``SeedSequence(seed)``.
     """
 
+    GOAL_DRAWS = 20
+
     def __init__(self, robot: Robot, config: ReachConfig, carriage: CarriageModel,
                  batch_size: int):
+        if isinstance(batch_size, bool) or not isinstance(batch_size, (int, np.integer)) \
+                or batch_size < 1:
+            raise ValueError(f"batch_size must be an integer >= 1, got {batch_size!r}")
         self.robot, self.config, self.carriage = robot, config, carriage
         self.B, self.N = batch_size, robot.n_tubes
         self.robots = RobotBatch(robot, carriage, batch_size)
@@ -130,6 +156,13 @@ class ReachBatch:
         self.action_space = spaces.Box(-1.0, 1.0, (2 * N,), np.float32)
         self.speeds = np.concatenate([np.full(N, carriage.insertion_speed),
                                       np.full(N, carriage.rotation_speed)])
+        # every tip lies within the longest exposed length (robot.reach) of the orifice, so two
+        # tips are never more than 2 reach apart
+        if config.goal_min_distance > 2.0 * robot.reach:
+            raise ValueError(
+                f"goal_min_distance ({config.goal_min_distance:g} m) cannot be met: every tip "
+                f"lies within the robot's reach ({robot.reach:.4g} m) of the orifice, so no "
+                f"goal is more than 2 x reach = {2.0 * robot.reach:.4g} m from the start")
 
     # -- seeding and sampling -------------------------------------------------------------------
     def seed(self, seed: int | None) -> None:
@@ -180,11 +213,20 @@ class ReachBatch:
         goal_x = xs[:, 1]
         close = np.linalg.norm(goal - tips[:, 0], axis=-1) < self.config.goal_min_distance
         for i in np.flatnonzero(close):
-            for _ in range(20):
+            farthest = float(np.linalg.norm(goal[i] - tips[i, 0]))
+            for _ in range(self.GOAL_DRAWS):
                 x2, t2, _, _ = self.sample_stable(idx[i:i + 1], per_robot=1)
-                if np.linalg.norm(t2[0, 0] - tips[i, 0]) >= self.config.goal_min_distance:
+                dist = float(np.linalg.norm(t2[0, 0] - tips[i, 0]))
+                farthest = max(farthest, dist)
+                if dist >= self.config.goal_min_distance:
                     goal[i], goal_x[i] = t2[0, 0], x2[0, 0]
                     break
+            else:
+                raise ValueError(
+                    f"goal_min_distance ({self.config.goal_min_distance:g} m) cannot be met: "
+                    f"{self.GOAL_DRAWS + 1} goals drawn for robot {int(idx[i])} were all "
+                    f"closer to its start tip (farthest {farthest:.4g} m); lower "
+                    f"goal_min_distance")
         # start states: one Equilibrium per solve round; set them per source batch
         by_eq: dict[int, tuple] = {}
         for i, (e, r) in enumerate(zip(eqs, rows, strict=True)):
@@ -206,11 +248,34 @@ class ReachBatch:
         return (np.abs(d) / (self.speeds * self.carriage.control_period)).max(-1)
 
     # -- stepping -----------------------------------------------------------------------------
+    @staticmethod
+    def check_action(action, shape: tuple[int, ...]) -> np.ndarray:
+        """``action`` as float64 of exactly ``shape``, clipped to the action box ``[-1, 1]``
+        (actuator saturation, reported as ``info["saturated"]``). Raises ``ValueError`` for
+        another shape (no reshaping: a ``(2, 2)`` action for four actuators is a bug in the
+        caller, not a layout to guess), a non-numeric or complex action, and NaN/inf entries
+        (a diverged policy must not be driven as if it had asked for zero force)."""
+        a = np.asarray(action)
+        if a.dtype == object or not (np.issubdtype(a.dtype, np.floating)
+                                     or np.issubdtype(a.dtype, np.integer)):
+            raise ValueError(f"action must be a real numeric array of shape {shape}, got dtype "
+                             f"{a.dtype}")
+        if a.shape != shape:
+            raise ValueError(f"action must have shape {shape} (one entry per actuator: "
+                             f"insertions then rotations), got shape {a.shape}")
+        a = a.astype(np.float64)
+        bad = ~np.isfinite(a)
+        if bad.any():
+            where = [tuple(int(i) for i in ix) for ix in np.argwhere(bad)[:4]]
+            raise ValueError(f"action must be finite; entries {where} are {a[bad][0]!r}"
+                             + (f" (and {int(bad.sum()) - len(where)} more)"
+                                if bad.sum() > len(where) else ""))
+        return np.clip(a, -1.0, 1.0)
+
     def step(self, action: np.ndarray):
-        """Apply ``action (B, 2N)`` in ``[-1, 1]``; returns ``(reward, terminated, truncated,
-        infos)`` with ``infos`` a dict of ``(B,)`` arrays."""
-        a = np.clip(np.nan_to_num(np.asarray(action, np.float64).reshape(self.B, 2 * self.N)),
-                    -1.0, 1.0)
+        """Apply ``action (B, 2N)`` in ``[-1, 1]`` (see :meth:`check_action`); returns
+        ``(reward, terminated, truncated, infos)`` with ``infos`` a dict of ``(B,)`` arrays."""
+        a = self.check_action(action, (self.B, 2 * self.N))
         tip0 = self.robots.tip.copy()
         if self.config.control == "force":
             tau = a * self.robot.action_scale

@@ -71,7 +71,7 @@ class CTRReachVecEnv(VecEnv):
         return [seed] * self.num_envs
 
     def step_async(self, actions: np.ndarray) -> None:
-        self._actions = np.asarray(actions)
+        self._actions = self.task.check_action(actions, (self.num_envs, *self.action_space.shape))
 
     def step_wait(self):
         reward, terminated, truncated, infos = self.task.step(self._actions)

@@ -1,0 +1,278 @@
+"""Issue 14, items 8, 9, 11 in the environments: bad actions and options raise (naming the
+field and the rule) instead of being silently fixed; a one-tube robot; Gymnasium's render API;
+the energy acceptance of the overdamped carriage step."""
+
+from __future__ import annotations
+
+import math
+import warnings
+
+import gymnasium as gym
+import numpy as np
+import pytest
+import torch
+from gymnasium.utils.env_checker import check_env as gym_check_env
+from hypothesis import given, settings
+from hypothesis import strategies as st
+
+import torchpvs
+from envs import CarriageModel, CTRReachEnv, CTRReachVecEnv, RobotBatch, fig3_two_tube
+from envs.robots import Robot, make_robot, solve_batch
+from envs.task import ReachBatch, ReachConfig
+
+
+@pytest.fixture(scope="module")
+def force_env():
+    env = CTRReachEnv()
+    env.reset(seed=0)
+    return env
+
+
+@pytest.fixture(scope="module")
+def vec_env():
+    venv = CTRReachVecEnv(2)
+    venv.seed(0)
+    venv.reset()
+    return venv
+
+
+# ---------------------------------------------------------------------------------------------
+# Actions: NaN/inf and wrong shapes raise (they used to become 0 / be reshaped)
+
+@settings(max_examples=25, deadline=None)
+@given(i=st.integers(0, 3), bad=st.sampled_from([math.nan, math.inf, -math.inf]),
+       dtype=st.sampled_from([np.float32, np.float64, np.float16]))
+def test_non_finite_actions_raise(force_env, i, bad, dtype):
+    x0 = force_env.actuation
+    a = np.zeros(4, dtype)
+    a[i] = bad
+    with pytest.raises(ValueError, match=r"action must be finite; entries \[\(" + str(i)):
+        force_env.step(a)
+    np.testing.assert_array_equal(force_env.actuation, x0)  # nothing moved
+
+
+@pytest.fixture(scope="module")
+def joint_env():
+    env = CTRReachEnv(control="joint")
+    env.reset(seed=0)
+    return env
+
+
+@pytest.mark.parametrize("shape", [(2, 2), (1, 4), (4, 1), (3,), (5,), (), (8,), (1, 1, 4)])
+@pytest.mark.parametrize("control", ["force", "joint"])
+def test_single_env_refuses_actions_of_another_shape(force_env, joint_env, shape, control):
+    env = force_env if control == "force" else joint_env
+    x0 = env.actuation
+    with pytest.raises(ValueError, match=r"action must have shape \(4,\).*got shape"):
+        env.step(np.zeros(shape, np.float32))
+    np.testing.assert_array_equal(env.actuation, x0)
+
+
+@pytest.mark.parametrize("shape", [(1, 2, 2), (2, 2, 2), (4, 2), (8,), (2, 4, 1), (1, 4)])
+def test_vec_env_refuses_actions_of_another_shape(vec_env, shape):
+    with pytest.raises(ValueError, match=r"action must have shape \(2, 4\).*got shape"):
+        vec_env.step(np.zeros(shape, np.float32))
+
+
+def test_vec_env_refuses_non_finite_actions(vec_env):
+    a = np.zeros((2, 4))
+    a[1, 2] = np.nan
+    with pytest.raises(ValueError, match=r"action must be finite; entries \[\(1, 2\)\]"):
+        vec_env.step(a)
+
+
+@pytest.mark.parametrize("action", [np.array(["0", "0", "0", "0"]),
+                                    np.array([None] * 4, dtype=object),
+                                    np.ones(4, dtype=complex), np.ones(4, dtype=bool)],
+                         ids=["str", "object", "complex", "bool"])
+def test_non_numeric_actions_raise(force_env, action):
+    with pytest.raises(ValueError, match="action must be a real numeric array"):
+        force_env.step(action)
+
+
+def test_valid_actions_still_work_and_saturate(force_env):
+    """Finite actions outside the box are clipped (actuator saturation, reported)."""
+    _, _, _, _, info = force_env.step(np.array([5, -5, 0, 0], np.float64))
+    np.testing.assert_allclose(info["tau"][:2], [force_env.robot.force_scale[0],
+                                                 -force_env.robot.force_scale[1]])
+    assert info["saturated"] == 0.5
+
+
+# ---------------------------------------------------------------------------------------------
+# Options: non-finite or meaningless values raise, naming the field
+
+@pytest.mark.parametrize(("field", "value"), [
+    ("snap_penalty", math.nan), ("snap_penalty", -math.inf), ("snap_penalty", 5.0),
+    ("snap_penalty", "a"), ("dense_scale", math.inf), ("dense_scale", math.nan),
+    ("max_joint_step", (math.nan, 0.1)), ("max_joint_step", (1e-3, math.inf)),
+    ("max_joint_step", 1e-3), ("goal_min_distance", math.nan), ("goal_min_distance", -1e-3),
+    ("goal_min_distance", math.inf), ("tolerance", math.nan), ("tolerance", True),
+])
+def test_bad_task_options_name_the_field(field, value):
+    with pytest.raises(ValueError, match=field):
+        ReachConfig(**{field: value})
+
+
+def test_snap_penalty_zero_and_negative_are_fine():
+    assert ReachConfig(snap_penalty=0.0).snap_penalty == 0.0
+    assert ReachConfig(snap_penalty=-3).snap_penalty == -3
+
+
+@pytest.mark.parametrize("factory", [CTRReachEnv, lambda **kw: CTRReachVecEnv(2, **kw)],
+                         ids=["env", "vec_env"])
+def test_goal_min_distance_beyond_the_workspace_raises(factory):
+    """Every tip lies within the robot's reach of the orifice: goals are never more than
+    2 x reach from the start. 10 m used to return goals 0.056 m away without a word."""
+    with pytest.raises(ValueError, match=r"goal_min_distance \(10 m\) cannot be met.*reach"):
+        factory(goal_min_distance=10.0)
+
+
+def test_goal_min_distance_not_met_by_sampling_raises(monkeypatch):
+    """Below 2 x reach but beyond what the Fig. 3 robot's tips span (its tubes leave the
+    orifice along +z and bend by at most ~70 deg): the redraws fail and reset says so."""
+    monkeypatch.setattr(ReachBatch, "GOAL_DRAWS", 3)  # 20 by default; fewer keep it quick
+    robot = fig3_two_tube()
+    env = CTRReachEnv(goal_min_distance=1.9 * robot.reach)
+    with pytest.raises(ValueError, match=r"goal_min_distance .* cannot be met: 4 goals"):
+        env.reset(seed=0)
+
+
+def test_goal_min_distance_that_can_be_met_is_met():
+    env = CTRReachEnv(goal_min_distance=0.05)
+    for seed in range(3):
+        obs, _ = env.reset(seed=seed)
+        assert np.linalg.norm(obs["desired_goal"] - obs["achieved_goal"]) >= 0.05 - 1e-6
+
+
+# ---------------------------------------------------------------------------------------------
+# Batch size 0 (the solver's message was "expected 1 or 1")
+
+def test_batch_size_zero_is_refused_by_name():
+    robot = fig3_two_tube()
+    with pytest.raises(ValueError, match=r"batch_size must be an integer >= 1, got 0"):
+        RobotBatch(robot, CarriageModel(), 0)
+    with pytest.raises(ValueError, match=r"batch_size must be an integer >= 1, got 0"):
+        ReachBatch(robot, ReachConfig(), CarriageModel(), 0)
+    with pytest.raises(ValueError, match=r"x must have shape \(B, 4\) with a batch size B >= 1.*"
+                                         r"got shape \(0, 4\)"):
+        solve_batch(robot, np.zeros((0, 4)))
+    with pytest.raises(ValueError, match=r"x must have shape \(B, 4\).*got shape \(4,\)"):
+        solve_batch(robot, np.zeros(4))
+    with pytest.raises(ValueError, match="num_envs"):
+        CTRReachVecEnv(0)
+
+
+# ---------------------------------------------------------------------------------------------
+# A one-tube robot (no relative rotation)
+
+@pytest.fixture(scope="module")
+def one_tube_scene():
+    inner = torchpvs.load_scene("renda2021_fig3").tubes[1]  # kappa 13.8 1/m over 85 mm
+    return torchpvs.Scene((inner,), torchpvs.Actuation((0.15,), (0.0,)))
+
+
+def test_one_tube_robot_is_an_env_robot(one_tube_scene):
+    """It used to fail with "force_scale and torque_scale must be > 0": a single tube's base
+    rotation is a rigid rotation, dU*/dalpha = 0 (physics.md, "Common rotation": the torques
+    sum to zero without a tip load), so it has no measured torque scale. The insertion force
+    is the configurational force 1/2 EI kappa^2 whenever the curved part spans the orifice
+    (physics.md, "The configurational force"; Bigoni et al. 2015), so the measured scale is
+    1.5 x that (the p99 of |tau_D| over the workspace)."""
+    robot = make_robot(one_tube_scene)
+    tube = one_tube_scene.tubes[0]
+    assert robot.force_scale[0] == pytest.approx(1.5 * 0.5 * tube.bending_stiffness * 13.8**2,
+                                                 rel=5e-3)
+    assert robot.torque_scale[0] > 0
+    env = CTRReachEnv(robot=one_tube_scene)
+    assert env.action_space.shape == (2,)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        gym_check_env(env, skip_render_check=True)
+    env.reset(seed=0)
+    assert env.elastic_forces[1] == pytest.approx(0.0, abs=1e-12)
+    a0 = env.actuation[1]
+    _, _, _, _, info = env.step(np.array([0.0, 0.6], np.float32))
+    # no elastic torque: b alpha_dot = tau, so alpha moves at 0.6 x the rotation speed
+    c = env.carriage
+    assert env.actuation[1] - a0 == pytest.approx(0.6 * c.rotation_speed * c.control_period,
+                                                  rel=1e-6)
+    venv = CTRReachVecEnv(3, robot=one_tube_scene, control="joint")
+    venv.seed(1)
+    venv.reset()
+    obs, r, d, infos = venv.step(np.ones((3, 2), np.float32))
+    assert np.isfinite(obs["observation"]).all()
+
+
+def test_a_robot_with_a_zero_scale_names_the_field(one_tube_scene):
+    with pytest.raises(ValueError, match=r"Robot\.torque_scale\[0\] must be > 0"):
+        Robot(name="x", scene=one_tube_scene, insertion_min=(0.0,), insertion_max=(0.2,),
+              force_scale=(1.0,), torque_scale=(0.0,))
+
+
+# ---------------------------------------------------------------------------------------------
+# Gymnasium's render API: "human" draws and returns None
+
+def test_render_modes_follow_the_gymnasium_api():
+    """check_env with the render check, every warning an error: it makes the env in each
+    declared render mode and checks what render() returns (None for "human"). Both
+    registered ids share CTRReachEnv.render, so one is checked."""
+    env = gym.make("torchpvs/CTRReachForce-v0", render_mode="human")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        gym_check_env(env.unwrapped)
+    assert env.unwrapped.render() is None
+    env.close()
+    rgb = CTRReachEnv(render_mode="rgb_array")
+    rgb.reset(seed=0)
+    assert rgb.render().ndim == 3
+    rgb.close()
+
+
+# ---------------------------------------------------------------------------------------------
+# Energy acceptance (Armijo) of the overdamped carriage step
+
+def _merit_rollout(seed: int, control_period: float, tau_frac, B: int = 4,
+                   seconds: float = 1.5):
+    """phi = U* - tau . x of B relaxing robots, ``(steps + 1, B)``, from a fresh solve at
+    each committed state (independent of the stored energies), and the solver calls."""
+    torch.set_num_threads(1)
+    robot = fig3_two_tube()
+    rb = RobotBatch(robot, CarriageModel(control_period=control_period), B)
+    rb.set_state(np.arange(B), robot.sample_actuation(np.random.default_rng(seed), B))
+    tau = np.asarray(tau_frac, dtype=np.float64) * robot.action_scale * np.ones((B, 1))
+    solves0 = rb.solves
+
+    def phi():
+        e = solve_batch(robot, rb.x, initial=rb.q).energy.numpy()
+        return e - (tau * rb.x).sum(-1)
+
+    out = [phi()]
+    substeps = 0
+    for _ in range(int(round(seconds / control_period))):
+        substeps += int(rb.step_force(tau)["substeps"].max())
+        out.append(phi())
+    return np.array(out), rb.solves - solves0, substeps
+
+
+@pytest.mark.parametrize(("seed", "period", "tau"), [
+    (4, 0.1, [0, 0, 0, 0]),      # 8.6e-4 J per step of rise before (issue 14, item 9)
+    (4, 0.05, [0, 0, 0, 0]),
+    (1, 0.1, [0.2, -0.1, 0.0, 0.3]),
+    (7, 0.1, [-0.3, 0.3, 0.5, -0.5]),
+])
+def test_overdamped_step_never_raises_the_merit(seed, period, tau):
+    """b xdot = tau - dU*/dx is the gradient flow of phi = U* - tau . x; with the Armijo
+    sufficient-decrease test (L. Armijo, Pacific J. Math. 16(1), 1966; Nocedal & Wright,
+    Numerical Optimization, 2nd ed., eq. 3.4) each step lowers phi, kinks of U* included
+    (physics.md, "Kinks"), up to the solver's round-off."""
+    phi, _, _ = _merit_rollout(seed, period, tau)
+    scale = np.abs(phi).max()
+    assert np.diff(phi, axis=0).max() <= 1e-10 * scale
+    assert (phi[-1] <= phi[0]).all() and (phi[-1] < phi[0] - 1e-6 * scale).any()
+
+
+def test_the_energy_test_adds_no_solves_where_the_first_step_is_accepted():
+    """A smooth stretch (no kink crossed): exactly one batched solve per substep."""
+    phi, solves, substeps = _merit_rollout(2, 0.1, [0.05, 0.05, 0.0, 0.0], B=2, seconds=0.5)
+    assert np.diff(phi, axis=0).max() <= 0.0
+    assert solves == substeps
