@@ -236,19 +236,18 @@ def _energy_rollout(control_period: float, seconds: float = 1.5) -> np.ndarray:
     return np.array(energy)
 
 
-def test_relaxation_dissipates_energy_up_to_first_order_chatter_at_kinks():
+def test_relaxation_dissipates_energy_even_at_kinks():
     """tau_cmd = 0 with damping: b xdot = -g = -dU*/dx is a gradient flow, so U* must not grow.
-    The discrete step can only chatter where U*(x) has a kink (a straight-to-curved transition
-    crossing a tube end, physics.md "sliding section boundaries"); that overshoot is O(h), so it
-    must halve with the control period, while every robot's energy drops overall."""
+    The linearly implicit step alone overshoots where U*(x) has a kink (a straight-to-curved
+    transition crossing a tube end, physics.md "sliding section boundaries"): an O(h) rise, up
+    to 8.6e-4 J per step on these robots. The Armijo acceptance of envs/dynamics.py (issue 14,
+    item 9) rejects such steps, so U* never rises beyond round-off, at either period, and every
+    robot's energy drops overall."""
     e1, e2 = _energy_rollout(0.1), _energy_rollout(0.05)
+    scale = np.abs(e1).max()
     for e in (e1, e2):
         assert (e[-1] <= e[0] + 1e-12).all()
-    rise1 = max(np.diff(e1, axis=0).max(), 0.0)
-    rise2 = max(np.diff(e2, axis=0).max(), 0.0)
-    scale = np.abs(e1).max()
-    assert rise2 <= 0.6 * rise1 + 1e-9 * scale, (rise1, rise2)
-    assert rise1 <= 1e-2 * scale  # a small oscillation, never an energy source
+        assert np.diff(e, axis=0).max() <= 1e-10 * scale
 
 
 @given(seed=st.integers(0, 2**31 - 1), control=st.sampled_from(["force", "joint"]))
