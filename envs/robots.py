@@ -32,12 +32,13 @@ class Robot:
         name: preset name.
         scene: the tubes (outermost first); ``scene.actuation`` is the default home pose.
         insertion_min, insertion_max: ``(N,)`` [m] stroke of each carriage (``D_j``), before the
-            nesting rules of conventions.md (``D_j >= D_{j-1}``) and the tip-order rule
+            nesting rules of docs/conventions.md (``D_j >= D_{j-1}``) and the tip-order rule
             ``L_j - D_j >= L_{j-1} - D_{j-1}`` are applied.
         force_scale: ``(N,)`` [N] the actuator force at action ``+-1`` (insertion carriages).
         torque_scale: ``(N,)`` [N·m] the actuator torque at action ``+-1`` (rotation stages).
-        margin_scale: [J·m²] a typical stability margin (the median of the smallest stiffness
-            eigenvalue over the workspace) used to normalize it in observations.
+        margin_scale: a typical stability margin (the median over the workspace of
+            ``Equilibrium.min_stiffness_eigenvalue``, the smallest eigenvalue of the
+            dimensionless, Jacobi-scaled stiffness) used to normalize it in observations.
         min_exposed: [m] the innermost tube keeps at least this much beyond the orifice.
     """
 
@@ -47,7 +48,7 @@ class Robot:
     insertion_max: tuple[float, ...]
     force_scale: tuple[float, ...]
     torque_scale: tuple[float, ...]
-    margin_scale: float = 1e-4
+    margin_scale: float = 0.3
     min_exposed: float = 5e-3
     notes: str = field(default="", compare=False)
 
@@ -145,7 +146,7 @@ def fig3_two_tube() -> Robot:
     scene = scene.with_actuation(insertion=[60e-3, 150e-3], rotation=[0.0, 0.0])
     return Robot(name="fig3_two_tube", scene=scene, insertion_min=(0.0, 0.0),
                  insertion_max=(180e-3, 298.5e-3), force_scale=_SCALES["fig3_two_tube"][0],
-                 torque_scale=_SCALES["fig3_two_tube"][1], margin_scale=2.8e-4,
+                 torque_scale=_SCALES["fig3_two_tube"][1], margin_scale=0.31,
                  notes="Renda et al. RA-L 2021, Table I / Fig. 3")
 
 
@@ -162,7 +163,7 @@ def rvim_three_tube() -> Robot:
     return Robot(name="rvim_three_tube", scene=scene, insertion_min=(0.0, 0.0, 0.0),
                  insertion_max=(168e-3, 270e-3, 304e-3),
                  force_scale=_SCALES["rvim_three_tube"][0],
-                 torque_scale=_SCALES["rvim_three_tube"][1], margin_scale=3.6e-5,
+                 torque_scale=_SCALES["rvim_three_tube"][1], margin_scale=0.18,
                  notes="gym-ctr-reach ctr_2 (RViM lab tubes)")
 
 

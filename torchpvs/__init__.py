@@ -1,6 +1,7 @@
 """torchpvs — piecewise variable-strain (PVS) equilibrium of concentric tube robots in PyTorch.
 
-Pipeline: scene -> sections -> bases/quadrature -> energy -> Newton solve -> outputs.
+Pipeline: scene -> sections -> bases/quadrature -> energy -> plan + Newton kernel -> implicit
+backward -> outputs (docs/index.md maps each stage to its module).
 """
 
 from .continuation import ActuationPath, Continuation, FoldEvent, continuation
@@ -9,11 +10,12 @@ from .force_control import ForceControlled, solve_force_controlled
 from .implicit import NearSingularStiffnessWarning
 from .layer import CTR
 from .scene import Actuation, Load, Scene, SceneError, Tube, builtin_scenes, load_scene
-from .solver import SolverError, SolverOptions, solve
+from .plan import Plan
+from .solver import AccuracyWarning, SolverError, SolverOptions, solve
 
 __all__ = [
     "Tube", "Actuation", "Load", "Scene", "SceneError", "load_scene", "builtin_scenes",
-    "SolverOptions", "SolverError", "solve", "Equilibrium", "CTR", "NearSingularStiffnessWarning",
+    "SolverOptions", "SolverError", "AccuracyWarning", "Plan", "solve", "Equilibrium", "CTR", "NearSingularStiffnessWarning",
     "continuation", "ActuationPath", "Continuation", "FoldEvent",
     "solve_force_controlled", "ForceControlled",
 ]

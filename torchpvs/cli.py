@@ -1,6 +1,6 @@
 """The ``torchpvs`` command: ``solve``, ``plot``, ``demo`` and ``scenes``.
 
-``torchpvs solve SCENE --json`` prints the object of ``shared/notes/conventions.md`` and exits
+``torchpvs solve SCENE --json`` prints the object of ``docs/conventions.md`` and exits
 0 (converged), 1 (not converged; the output is still printed) or 2 (bad scene or bad arguments,
 with a one-line message on stderr). ``SCENE`` is a YAML/JSON file or a built-in scene name;
 ``--set KEY=VALUE`` overrides a field before validation (``--set actuation.rotation[1]=0.5``).
@@ -26,9 +26,9 @@ CONTRACT_KEYS = (
     "actuation_forces", "actuation_torques", "energy", "stable", "min_stiffness_eigenvalue",
     "residual_norm", "iterations", "dofs", "solve_time_s",
 )
-# Documented extensions (conventions.md allows new output keys): the PVS model reports the
+# Documented extensions (docs/conventions.md allows new output keys): the PVS model reports the
 # insertion-side force where U*(D) has a kink, and which forces are one-sided.
-EXTENSION_KEYS = ("actuation_forces_insertion", "force_kink")
+EXTENSION_KEYS = ("actuation_forces_insertion", "force_kink", "error_estimate", "accuracy_met")
 DEMO_SCENE = "renda2021_fig3"
 
 
@@ -76,7 +76,7 @@ def _build_parser() -> _Parser:
                        "2 bad scene or arguments.")
     scene_args(p)
     p.add_argument("--json", action="store_true",
-                   help="print one JSON object (shared/notes/conventions.md) instead of a table")
+                   help="print one JSON object (docs/conventions.md) instead of a table")
     p.add_argument("--backbone", type=_points, metavar="K",
                    help="add K >= 2 backbone points [m] from the orifice to the tip")
 

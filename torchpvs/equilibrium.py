@@ -9,10 +9,31 @@ from typing import Any
 import torch
 
 from .lie import magnus4_step
-from .mechanics import node_fields, potential, section_start_poses, tip_pose
+from .mechanics import (
+    elastic_energy_maps,
+    node_fields,
+    potential,
+    section_start_poses,
+    tip_pose,
+)
 from .sections import build_layout
 
-__all__ = ["Equilibrium"]
+__all__ = ["Equilibrium", "actuation"]
+
+
+def _scaled_stiffness(H: torch.Tensor, qmask: torch.Tensor):
+    """``S H S`` with ``S = diag(|H_ii|^-1/2)`` on active coordinates (identity rows elsewhere)
+    and the active mask ``(B, nq)`` as float."""
+    d = H.diagonal(dim1=-2, dim2=-1).abs()
+    active = qmask * (d > 0)
+    S = torch.where(active > 0, d.clamp(min=torch.finfo(H.dtype).tiny) ** -0.5,
+                    torch.ones_like(d))
+    Hs = S[:, :, None] * H * S[:, None, :]
+    return Hs, active
+
+
+def _stability_threshold(dtype: torch.dtype) -> float:
+    return 0.01 * torch.finfo(dtype).eps ** 0.5
 
 
 def _wrap(angle: torch.Tensor) -> torch.Tensor:
@@ -32,7 +53,7 @@ class Equilibrium:
             outer tube's distal end, wrapped to ``(-pi, pi]``.
         energy: ``(B,)`` [J] stored elastic energy minus the potential of the tip force.
         actuation_forces: ``(B, N)`` [N] ``dU*/dD_j`` along increasing ``D_j`` (retraction;
-            positive = the actuator pulls back), conventions.md.
+            positive = the actuator pulls back), docs/conventions.md.
         actuation_forces_insertion: ``(B, N)`` [N] the derivative for decreasing ``D_j``
             (insertion). Equal to ``actuation_forces`` where ``U*(D)`` is smooth; different where
             it has a kink; NaN where insertion is impossible (``D_j = 0`` or ``D_j = D_{j-1}``).
@@ -42,12 +63,17 @@ class Equilibrium:
         converged: ``(B,)`` bool; ``reason``: per-element text ("converged" or why not).
         residual_norm: ``(B,)`` scaled residual (see ``SolverOptions.tol``).
         iterations: ``(B,)`` Newton iterations (at the final order).
-        stable: ``(B,)`` bool, the Hessian over the active coordinates is positive definite.
-        min_stiffness_eigenvalue: ``(B,)`` [J·m²] smallest eigenvalue of that Hessian.
+        stable: ``(B,)`` bool, the Hessian over the active coordinates is positive definite
+            (decided on its nondimensional form, see ``min_stiffness_eigenvalue``).
+        min_stiffness_eigenvalue: ``(B,)`` smallest eigenvalue of the Jacobi-scaled
+            (dimensionless) Hessian; computed on first access.
         dofs: ``(B,)`` number of active generalized coordinates.
         order: basis degree used; ``error_estimate``: ``(B,)`` [m] a posteriori tip error: the
             tip change from the previous order (automatic order selection) plus the tip change
             from doubling the Magnus steps (automatic ``n_magnus``); NaN when the order is fixed.
+        accuracy_met: ``(B,)`` bool, ``error_estimate <= options.accuracy``; False where no
+            estimate exists (a fixed order). An automatic solve that cannot meet the request
+            (``max_order`` or the Magnus cap reached) also warns.
         solve_time_s: wall time of the solve [s].
     """
 
@@ -64,13 +90,36 @@ class Equilibrium:
     residual_norm: torch.Tensor
     iterations: torch.Tensor
     stable: torch.Tensor
-    min_stiffness_eigenvalue: torch.Tensor
     dofs: torch.Tensor
     order: int
     error_estimate: torch.Tensor
+    accuracy_met: torch.Tensor
     solve_time_s: float
     reason: tuple[str, ...]
     _ctx: dict[str, Any] = field(repr=False, default_factory=dict)
+
+    @property
+    def min_stiffness_eigenvalue(self) -> torch.Tensor:
+        """``(B,)`` smallest eigenvalue of the nondimensional stiffness ``S H S`` over the active
+        coordinates, ``S = diag(H_ii^-1/2)`` (dimensionless, computed on first access).
+
+        The scaling is a congruence, so the sign pattern (stable or not) is that of ``H``
+        itself (Sylvester's law of inertia), but the value no longer depends on units, on the
+        robot's physical scale, or on near-empty sections whose coordinates carry stiffness in
+        proportion to their length. ``stable`` is ``min_stiffness_eigenvalue > tau`` with
+        ``tau = 0.01 sqrt(eps)`` of the dtype (1.5e-10 in float64). NaN without coordinates.
+        """
+        ev = self._ctx.get("min_eig")
+        if ev is None:
+            info = self._ctx["implicit_info"]
+            with torch.no_grad():
+                Hs, active = _scaled_stiffness(info["H"], info["qmask"])
+                # Inactive rows (identity) are pushed above the spectrum: never the minimum.
+                ev = torch.linalg.eigvalsh(Hs + torch.diag_embed(1.0 - active) * 10.0)[:, 0]
+                # No coordinates (a robot entirely in the guide): no stiffness to speak of.
+                ev = torch.where(active.sum(-1) > 0, ev, torch.full_like(ev, float("nan")))
+            self._ctx["min_eig"] = ev
+        return ev
 
     def __len__(self) -> int:
         return self.q.shape[0]
@@ -82,23 +131,31 @@ class Equilibrium:
     # ------------------------------------------------------------------------------------------
     @classmethod
     def _from_solution(cls, scene, tubes, res, opts, elapsed: float,
-                       diff: dict | None = None) -> Equilibrium:
+                       diff: dict | None = None, plan=None, resolve=None,
+                       resolve_all=None) -> Equilibrium:
+        """Outputs of a converged solve ``res``. Re-solves are handed in by the solver, so that
+        this module never imports it: ``resolve(D, rows) -> forces (R, N)`` at insertions ``D``
+        for batch rows ``rows``, near this equilibrium (the one-sided forces at kinks), and
+        ``resolve_all(options, initial) -> Equilibrium`` for the same inputs with other options
+        (kept in ``_ctx["resolve"]`` for :mod:`torchpvs.jacobians`)."""
         q, lay, tab, H = res["q"], res["lay"], res["tab"], res["H"]
         B = q.shape[0]
         qmask = lay["qmask"]
         with torch.no_grad():
-            f = node_fields(q, lay, tab["xq"], tab["phi_q"], tab["Q_q"])
+            # Angles at section ends do not depend on the evaluation points: one point will do.
+            f = node_fields(q, lay, tab["xq"][:1], tab["phi_q"][:1], tab["Q_q"][:1])
             psi_l1 = f["psi0"] + (f["inc"] * lay["before_l1"][..., None]).sum(-2)
             rel = _wrap(psi_l1[:, 1:] - psi_l1[:, :1])
-            # Stability: eigenvalues of the Hessian restricted to active coordinates; inactive
-            # rows are pushed far above the spectrum so they never become the minimum.
-            big = H.diagonal(dim1=-2, dim2=-1).abs().amax(-1) * 10 + 1.0
-            Hr = H + torch.diag_embed((1.0 - qmask) * big[:, None])
-            ev = torch.linalg.eigvalsh(Hr)[:, 0]
-            tiny = 1e-10 * H.diagonal(dim1=-2, dim2=-1).abs().amax(-1)
-            stable = ev > tiny
+            # Stability on the nondimensional stiffness (see min_stiffness_eigenvalue): positive
+            # definite beyond a threshold set by the precision alone -- one Cholesky; the
+            # eigenvalue itself is computed only when asked for.
+            Hs, active = _scaled_stiffness(H, qmask)
+            tau = _stability_threshold(H.dtype)
+            stable = torch.linalg.cholesky_ex(Hs - tau * torch.diag_embed(active))[1] == 0
             dofs = qmask.sum(-1).long()
-            energy = potential(q, lay, tab, None, res["with_load"])
+            energy = elastic_energy_maps(q, res["maps"])
+            if res["with_load"]:
+                energy = energy - (lay["force"] * res["tip"]).sum(-1)
         forces = torques = insert_side = None
         kink = torch.zeros_like(res["D"], dtype=torch.bool)
         paper = opts.compute_forces and getattr(opts, "force_model", "energy") == "paper"
@@ -106,11 +163,12 @@ class Equilibrium:
             forces, torques = _paper_actuation(tubes, res)
             insert_side = forces.clone()
         elif opts.compute_forces:
-            forces, torques = _actuation(scene, tubes, res)
-            forces, insert_side, kink = _one_sided_forces(scene, tubes, res, opts, forces)
+            forces, torques = actuation(tubes, res)
+            forces, insert_side, kink = _one_sided_forces(tubes, res, forces, resolve)
         conv = res["converged"]
+        conv_list = conv.tolist()
         reason = tuple(
-            "converged" if bool(conv[b]) else
+            "converged" if conv_list[b] else
             (f"residual {float(res['residual'][b]):.3g} > tol after {int(res['iterations'][b])} "
              f"iterations; try method='minimize', more max_iter, or a different initial guess")
             for b in range(B))
@@ -118,7 +176,8 @@ class Equilibrium:
                                                    device=q.device))
         ctx = {"scene": scene, "tubes": tubes, "lay": lay, "tab": tab, "disc": res["disc"],
                "D": res["D"], "alpha": res["alpha"], "F": res["F"], "M": res["M"],
-               "implicit_info": res["implicit_info"], "options": opts}
+               "implicit_info": res["implicit_info"], "options": opts, "plan": plan,
+               "resolve": resolve_all}
         tip, R = res["tip"], res["R"]
         if diff is not None:  # differentiable versions of the same values (implicit backward)
             q, tip, R, energy = diff["q"], diff["tip"], diff["R"], diff["energy"]
@@ -131,8 +190,9 @@ class Equilibrium:
                    relative_rotation_at_outer_tip=rel, energy=energy, actuation_forces=forces,
                    actuation_torques=torques, actuation_forces_insertion=insert_side,
                    force_kink=kink, converged=conv, residual_norm=res["residual"],
-                   iterations=res["iterations"], stable=stable, min_stiffness_eigenvalue=ev,
-                   dofs=dofs, order=res["order"], error_estimate=err, solve_time_s=elapsed,
+                   iterations=res["iterations"], stable=stable,
+                   dofs=dofs, order=res["order"], error_estimate=err,
+                   accuracy_met=err <= opts.accuracy, solve_time_s=elapsed,
                    reason=reason, _ctx=ctx)
 
     # ------------------------------------------------------------------------------------------
@@ -186,7 +246,7 @@ class Equilibrium:
 
     # ------------------------------------------------------------------------------------------
     def as_contract(self, index: int = 0, backbone_points: int | None = None) -> dict[str, Any]:
-        """The ``torchpvs solve --json`` object of conventions.md for batch element ``index``."""
+        """The ``torchpvs solve --json`` object of docs/conventions.md for batch element ``index``."""
         b = index
 
         def flt(x) -> float | None:
@@ -210,6 +270,9 @@ class Equilibrium:
             "actuation_forces_insertion": lst(self.actuation_forces_insertion[b])
             if self.actuation_forces_insertion is not None else None,
             "force_kink": [bool(k) for k in self.force_kink[b]],
+            # ... and the a posteriori tip error [m] with whether it meets options.accuracy.
+            "error_estimate": flt(self.error_estimate[b]),
+            "accuracy_met": bool(self.accuracy_met[b]),
             "energy": flt(self.energy[b]),
             "stable": bool(self.stable[b]),
             "min_stiffness_eigenvalue": flt(self.min_stiffness_eigenvalue[b]),
@@ -223,7 +286,7 @@ class Equilibrium:
         return out
 
 
-def _actuation(scene, tubes, res):
+def actuation(tubes, res):
     """``tau_D = dU*/dD``, ``tau_alpha = dU*/dalpha`` by the envelope theorem: at an equilibrium
     the total derivative equals the partial derivative at fixed coordinates ``q`` (the sections
     move with ``D``, the coordinates are strains on the normalized section coordinate)."""
@@ -357,17 +420,16 @@ def _paper_actuation(tubes, res, tol: float = 1e-12):
     return forces, torques
 
 
-def _one_sided_forces(scene, tubes, res, opts, forces, delta: float = 1e-7, tol: float = 1e-9):
+def _one_sided_forces(tubes, res, forces, resolve, delta: float = 1e-7, tol: float = 1e-9):
     """Where ``U*(D_j)`` has a kink — material of tube ``j`` changing kind exactly at the
     orifice: its base (``D_j = 0``: the guide torsion appears), its straight-to-curved transition
     (``D_j = Ls_j``: curvature enters the guide) or its end (``D_j = L_j``) — the derivative
     differs for insertion and retraction. Each side is computed at an equilibrium ``delta`` away
-    on that side (where ``U*`` is smooth), warm-started; the error is ``O(delta)``.
+    on that side (where ``U*`` is smooth), warm-started at the same order and Magnus count
+    (usually one Newton step), both sides in one batched ``resolve``; the error is ``O(delta)``.
 
     Returns ``(retraction side, insertion side, kink mask)``, all ``(B, N)``.
     """
-    from .solver import _solve
-
     D = res["D"]
     B, N = D.shape
     L = tubes.length.expand(B, N)
@@ -384,25 +446,19 @@ def _one_sided_forces(scene, tubes, res, opts, forces, delta: float = 1e-7, tol:
         return forces, insertion, kink
     idx = kink.nonzero()
     rows_b, rows_j = idx[:, 0], idx[:, 1]
-    step = torch.zeros(len(idx), N, dtype=D.dtype, device=D.device)
-    step[torch.arange(len(idx)), rows_j] = delta
-    sides = [("retract", step)]
     can_insert = ~blocked[rows_b, rows_j]
-    if bool(can_insert.any()):
-        sides.append(("insert", -step[can_insert]))
-    sub_opts = replace(opts, order=res["order"], on_failure="ignore")
+    # Rows: every kink on the retraction side, then those that can move on the insertion side.
+    sel = torch.cat([rows_b, rows_b[can_insert]])
+    sj = torch.cat([rows_j, rows_j[can_insert]])
+    sign = torch.cat([torch.ones_like(rows_j), -torch.ones_like(rows_j[can_insert])])
+    Dn = D[sel].clone()
+    Dn[torch.arange(len(sel)), sj] += delta * sign.to(D.dtype)
+    # Moving a base past the next one's would break the ordering: move them together.
+    Dn = torch.cummax(Dn, -1).values
+    vals = resolve(Dn, sel)
+    vals = vals[torch.arange(len(sel)), sj]
+    n_r = len(rows_b)
     retract = forces.clone()
-    for name, st in sides:
-        sel = rows_b if name == "retract" else rows_b[can_insert]
-        sj = rows_j if name == "retract" else rows_j[can_insert]
-        Dn = D[sel] + st
-        # Moving a base past the next one's would break the ordering: move them together.
-        Dn = torch.cummax(Dn, -1).values
-        eq = _solve(scene, tubes, Dn, res["alpha"][sel], res["F"][sel], res["M"][sel],
-                    sub_opts, res["q"][sel])
-        vals = eq.actuation_forces[torch.arange(len(sel)), sj]
-        if name == "retract":
-            retract[sel, sj] = vals
-        else:
-            insertion[sel, sj] = vals
+    retract[rows_b, rows_j] = vals[:n_r]
+    insertion[sel[n_r:], sj[n_r:]] = vals[n_r:]
     return retract, insertion, kink

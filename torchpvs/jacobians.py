@@ -1,7 +1,7 @@
 """Control quantities at an equilibrium: actuator stiffness, tip Jacobians, tip compliance.
 
 With actuator coordinates ``x = (D_1..D_N, alpha_1..alpha_N)`` and generalized forces
-``tau(x) = dU*/dx`` (conventions.md), at an equilibrium ``q*(x)``:
+``tau(x) = dU*/dx`` (docs/conventions.md), at an equilibrium ``q*(x)``:
 
 * actuator stiffness ``K_x = dtau/dx = U_xx - U_xq U_qq^-1 U_qx`` — the Schur complement of the
   full Hessian: the stiffness the actuators feel. It is singular along the common rotation
@@ -84,10 +84,8 @@ def control_jacobians(eq, *, rank_tol: float = 1e-9) -> ControlJacobians:
         # The compliance needs the load term and coordinates on unloaded distal sections.
         from dataclasses import replace
 
-        from .solver import _solve
         opts = replace(ctx["options"], load_coordinates=True, order=eq.order)
-        eq = _solve(ctx["scene"], ctx["tubes"], ctx["D"], ctx["alpha"], ctx["F"], ctx["M"],
-                    opts, eq)
+        eq = ctx["resolve"](opts, eq)
         ctx = eq._ctx
     info = ctx["implicit_info"]
     tubes: TubeTensors = ctx["tubes"]

@@ -14,6 +14,7 @@ from torch import nn
 
 from .equilibrium import Equilibrium
 from .scene import Scene, load_scene
+from .plan import Plan
 from .sections import TubeTensors
 from .solver import SolverOptions, _as_batch, _check_actuation, _solve
 
@@ -28,7 +29,7 @@ class CTR(nn.Module):
 
     Buffers (all ``(N,)`` except ``precurvature (N, 3, P)``), SI units: ``E``, ``G`` [Pa],
     ``inner_diameter``, ``outer_diameter``, ``straight_length``, ``curved_length`` [m],
-    ``precurvature`` polynomial coefficients [1/m, 1/m², ...] (conventions.md).
+    ``precurvature`` polynomial coefficients [1/m, 1/m², ...] (docs/conventions.md).
 
     Example::
 
@@ -54,6 +55,10 @@ class CTR(nn.Module):
             self.register_buffer(name, torch.tensor([getattr(t, name) for t in tubes],
                                                     dtype=dtype))
         self.register_buffer("precurvature", coef)
+        # The robot's plan (layout reuse between calls at the same insertions); valid while the
+        # properties are unchanged and need no gradient (see _solver_tubes).
+        self._plan = Plan(self.tube_tensors())
+        self._tubes_key = None
 
     def learnable(self, *names: str) -> CTR:
         """Turn the named buffers into ``nn.Parameter`` s (returns ``self``)."""
@@ -78,6 +83,52 @@ class CTR(nn.Module):
             coef=self.precurvature[None],
         )
 
+    def _check_properties(self) -> None:
+        """The scene rules (torchpvs.scene) on the current buffers/parameters, in tensor form:
+        one reduction in the common case, a named-field message on failure."""
+        E, G, di, do = self.E, self.G, self.inner_diameter, self.outer_diameter
+        Ls, Lc, pc = self.straight_length, self.curved_length, self.precurvature
+        rules = [
+            (~torch.isfinite(torch.cat([E, G, di, do, Ls, Lc, pc.reshape(-1)])),
+             None, "must be finite"),
+            (E <= 0, "E", "must be > 0 [Pa]"),
+            (G <= 0, "G", "must be > 0 [Pa]"),
+            (di < 0, "inner_diameter", "must be >= 0 [m]"),
+            (do <= di, "outer_diameter", "must exceed inner_diameter"),
+            (Ls < 0, "straight_length", "must be >= 0 [m]"),
+            (Lc < 0, "curved_length", "must be >= 0 [m]"),
+            (Ls + Lc <= 0, "straight_length + curved_length", "must be > 0 [m]"),
+        ]
+        if do.shape[0] > 1:
+            rules.append((torch.cat([torch.zeros_like(do[:1], dtype=torch.bool),
+                                     do[1:] > di[:-1]]), "outer_diameter",
+                          "must not exceed the next outer tube's inner_diameter"))
+        with torch.no_grad():
+            if not bool(torch.stack([r[0].any() for r in rules]).any()):
+                return
+            for mask, name, rule in rules:
+                if bool(mask.any()):
+                    if name is None:
+                        raise ValueError(f"CTR: every tube property {rule} (E, G, diameters, "
+                                         f"lengths, precurvature)")
+                    j = int(mask.reshape(-1).nonzero()[0])
+                    value = {"E": E, "G": G, "inner_diameter": di, "outer_diameter": do,
+                             "straight_length": Ls, "curved_length": Lc}.get(name, Ls + Lc)[j]
+                    raise ValueError(f"CTR: tubes[{j}].{name} ({float(value):g}) {rule}")
+
+    def _solver_tubes(self) -> tuple[TubeTensors, Plan | None]:
+        """Tube tensors for a solve and the plan to reuse: the cached ones while no property
+        needs a gradient and none was changed in place or moved (version counters), else fresh
+        differentiable ones and no plan."""
+        props = [getattr(self, name) for name in _PROPS]
+        if torch.is_grad_enabled() and any(t.requires_grad for t in props):
+            return self.tube_tensors(), None
+        key = tuple((id(t), t._version, t.dtype, t.device) for t in props)
+        if key != self._tubes_key:
+            self._plan = Plan(self.tube_tensors())
+            self._tubes_key = key
+        return self._plan.tubes, self._plan
+
     def forward(self, insertion: torch.Tensor, rotation: torch.Tensor,
                 tip_force: torch.Tensor | None = None, tip_moment: torch.Tensor | None = None,
                 initial: Equilibrium | torch.Tensor | None = None) -> Equilibrium:
@@ -99,7 +150,9 @@ class CTR(nn.Module):
                 raise ValueError(f"{name} has batch size {t.shape[0]}, expected 1 or {B}")
         D, A, F, M = (t.expand(B, -1) for t in (D, A, F, M))
         _check_actuation(D.detach(), self.scene)
-        return _solve(self.scene, self.tube_tensors(), D, A, F, M, self.options, initial)
+        self._check_properties()
+        tubes, plan = self._solver_tubes()
+        return _solve(self.scene, tubes, D, A, F, M, self.options, initial, plan)
 
     def extra_repr(self) -> str:
         return f"tubes={self.scene.n_tubes}, dtype={self.E.dtype}, device={self.E.device}"

@@ -13,23 +13,19 @@ from dataclasses import dataclass, replace
 
 import torch
 
-from .equilibrium import Equilibrium
+from .equilibrium import Equilibrium, actuation
 from .implicit import differentiable_outputs
-from .mechanics import (
-    _skew_vee,
-    build_maps,
-    elastic_energy,
-    elastic_energy_maps,
-    elastic_grad_hess,
-    tip_pose,
-)
+from .mechanics import tip_pose
+from . import newton
+from .newton import KERNELS, Problem, derivatives, scaled_residual, subset
+from .plan import MAGNUS_START, ORDER_START, Plan, plan_for, tube_tensors
 from .scene import Scene, load_scene
-from .sections import Discretization, TubeTensors, build_layout, n_coordinates
+from .sections import Discretization, TubeTensors, n_coordinates
 
-__all__ = ["SolverOptions", "SolverError", "solve", "tube_tensors"]
+__all__ = ["AccuracyWarning", "SolverOptions", "SolverError", "solve", "tube_tensors"]
 
 _METHODS = ("minimize", "root")
-_MAGNUS_START, _MAGNUS_MAX = 8, 256
+_MAGNUS_MAX = 256
 _ON_FAILURE = ("warn", "raise", "ignore")
 _FORCE_MODELS = ("energy", "paper")
 
@@ -38,14 +34,21 @@ class SolverError(RuntimeError):
     """Raised when ``options.on_failure == "raise"`` and some element did not converge."""
 
 
+class AccuracyWarning(RuntimeWarning):
+    """An automatic solve converged but its error estimate exceeds ``options.accuracy``."""
+
+
 @dataclass(frozen=True)
 class SolverOptions:
     """Options of :func:`solve`.
 
     Attributes:
-        accuracy: target tip-position accuracy [m]. With ``order=None`` the basis order is raised
-            (2, 3, ...) until two successive orders agree on every tip within ``accuracy``
-            (an a posteriori estimate); the chosen order is reported in ``Equilibrium.order``.
+        accuracy: target tip-position accuracy [m]. With ``order=None`` the basis order is
+            chosen automatically: the solve starts at the order of the warm start (``initial``,
+            an Equilibrium or coordinates of a basis size) or at 2, estimates the tip error
+            by one Newton step of the next order from the solution (its tip change), and raises
+            the order until that estimate is within ``accuracy``; the chosen order is reported
+            in ``Equilibrium.order``, the estimate in ``Equilibrium.error_estimate``.
         order: polynomial degree of every strain basis (``n = order + 1`` functions per strain
             per section; the paper's "quadratic" is 2). ``None`` = automatic from ``accuracy``.
         max_order: ceiling of the automatic choice.
@@ -59,9 +62,10 @@ class SolverOptions:
         max_iter: Newton iterations per order.
         n_quad: Gauss points per section (default ``2 (order + 1) + 4``).
         n_magnus: 4th-order Magnus steps per section for the backbone pose. ``None``
-            (default) = automatic: starting from 8, the tip is recomputed with twice the steps and
-            the count doubled (and the equilibrium re-solved) until the two agree within
-            ``accuracy / 2``; that difference is added to ``Equilibrium.error_estimate``.
+            (default) = automatic: starting from the warm start's count (else 8),
+            the tip is recomputed with twice the steps and the count doubled (and the
+            equilibrium re-solved) until the two agree within ``accuracy / 2``; that
+            difference is added to ``Equilibrium.error_estimate``.
         dtype: ``torch.float64`` (default for physics) or ``torch.float32``; ``None`` = from the
             given tensors, else float64.
         device: torch device; ``None`` = from the given tensors, else CPU.
@@ -69,7 +73,7 @@ class SolverOptions:
             an element does not converge. Status is always in ``Equilibrium.converged``/``reason``.
         compute_forces: also compute ``actuation_forces``/``actuation_torques`` (one backward pass).
         force_model: ``"energy"`` (default): ``tau = dU*/d(D, alpha)``, the energy-consistent
-            forces of conventions.md (they include the configurational force of precurved
+            forces of docs/conventions.md (they include the configurational force of precurved
             material entering or leaving the guide); ``"paper"``: the projection of the paper's
             eq. (41) (Renda et al. 2021), which omits the guide's stored bending energy — for
             reproducing the paper's Table II (docs/actuation-forces.md). Defined as the paper
@@ -82,6 +86,7 @@ class SolverOptions:
         load_coordinates: give distal single-tube sections coordinates even without a tip
             load (they are exact without; needed for the tip compliance at zero load and for
             gradients w.r.t. a load that is zero).
+        kernel: name of the Newton kernel in :data:`torchpvs.newton.KERNELS` (``"newton"``).
         singular_tol: the implicit backward warns (:class:`NearSingularStiffnessWarning`) for
             elements whose scaled stiffness has an eigenvalue below this in magnitude.
     """
@@ -102,6 +107,7 @@ class SolverOptions:
     backward_ridge: float = 0.0
     singular_tol: float = 1e-10
     load_coordinates: bool = False
+    kernel: str = "newton"
 
     def __post_init__(self) -> None:
         if not (isinstance(self.accuracy, (int, float)) and self.accuracy > 0
@@ -132,6 +138,9 @@ class SolverOptions:
                 f"options.n_magnus must be an integer >= 1 or None, got {self.n_magnus!r}")
         if not (self.backward_ridge >= 0 and math.isfinite(self.backward_ridge)):
             raise ValueError(f"options.backward_ridge must be >= 0, got {self.backward_ridge!r}")
+        if self.kernel not in KERNELS:
+            raise ValueError(f"options.kernel must be one of {tuple(KERNELS)}, "
+                             f"got {self.kernel!r}")
         if self.dtype not in (None, torch.float32, torch.float64):
             raise ValueError(f"options.dtype must be torch.float32, torch.float64 or None, "
                              f"got {self.dtype!r}")
@@ -139,28 +148,7 @@ class SolverOptions:
     def discretization(self, order: int) -> Discretization:
         n = order + 1
         return Discretization(n_basis=n, n_quad=self.n_quad or 2 * n + 4,
-                              n_magnus=self.n_magnus or _MAGNUS_START)
-
-
-def tube_tensors(scene: Scene, dtype: torch.dtype, device: torch.device) -> TubeTensors:
-    """The scene's tube properties as ``(1, N)`` tensors (``coef``: ``(1, N, 3, P)``)."""
-    P = max(1, max(len(ax) for t in scene.tubes for ax in t.precurvature))
-    coef = torch.zeros(1, scene.n_tubes, 3, P, dtype=dtype, device=device)
-    for j, t in enumerate(scene.tubes):
-        for d, ax in enumerate(t.precurvature):
-            if ax:
-                coef[0, j, d, :len(ax)] = torch.tensor(ax, dtype=dtype, device=device)
-
-    def row(values):
-        return torch.tensor([values], dtype=dtype, device=device)
-
-    return TubeTensors(
-        EI=row([t.bending_stiffness for t in scene.tubes]),
-        GJ=row([t.torsional_stiffness for t in scene.tubes]),
-        length=row([t.length for t in scene.tubes]),
-        straight=row([t.straight_length for t in scene.tubes]),
-        coef=coef,
-    )
+                              n_magnus=self.n_magnus or MAGNUS_START)
 
 
 def _as_batch(x, n: int, name: str, dtype, device) -> torch.Tensor:
@@ -176,7 +164,7 @@ def _as_batch(x, n: int, name: str, dtype, device) -> torch.Tensor:
 
 def _check_actuation(D: torch.Tensor, scene: Scene) -> None:
     if (D < 0).any():
-        raise ValueError("insertion: every D_j must be >= 0 (conventions.md)")
+        raise ValueError("insertion: every D_j must be >= 0 (docs/conventions.md)")
     if scene.n_tubes > 1 and (D[:, 1:] < D[:, :-1]).any():
         raise ValueError("insertion: D_j must be >= D_{j-1} for every batch element "
                          "(an inner tube's base lies behind the outer one's)")
@@ -203,11 +191,21 @@ def solve(scene: Scene | str, *, insertion=None, rotation=None, tip_force=None, 
     """
     if not isinstance(scene, Scene):
         scene = load_scene(scene)
+    if options is not None and not isinstance(options, SolverOptions):
+        raise TypeError(f"options must be a torchpvs.SolverOptions (e.g. SolverOptions(**d) "
+                        f"for a dict d), got {type(options).__name__}")
     opts = options or SolverOptions()
+    for name, x in (("insertion", insertion), ("rotation", rotation), ("tip_force", tip_force),
+                    ("tip_moment", tip_moment)):
+        if isinstance(x, torch.Tensor) and x.dtype not in (torch.float32, torch.float64) \
+                and (x.is_floating_point() or x.is_complex()):
+            raise ValueError(f"{name}: dtype {x.dtype} is not supported; the solver runs in "
+                             f"torch.float32 or torch.float64 (convert the input, or set "
+                             f"SolverOptions(dtype=...))")
     ref = next((x for x in (insertion, rotation, tip_force, tip_moment)
                 if isinstance(x, torch.Tensor)), None)
-    dtype = opts.dtype or (ref.dtype if ref is not None and ref.is_floating_point()
-                           else torch.float64)
+    dtype = opts.dtype or (ref.dtype if ref is not None
+                           and ref.dtype in (torch.float32, torch.float64) else torch.float64)
     device = torch.device(opts.device) if opts.device is not None else (
         ref.device if ref is not None else torch.device("cpu"))
     N = scene.n_tubes
@@ -220,6 +218,9 @@ def solve(scene: Scene | str, *, insertion=None, rotation=None, tip_force=None, 
     M = _as_batch(scene.load.tip_moment if tip_moment is None else tip_moment, 3,
                   "tip_moment", dtype, device)
     B = max(D.shape[0], A.shape[0], F.shape[0], M.shape[0])
+    if min(D.shape[0], A.shape[0], F.shape[0], M.shape[0]) == 0:
+        raise ValueError("insertion, rotation, tip_force, tip_moment: batch size 0; give at least "
+                         "one row (shape (B, ...) with B >= 1)")
     for name, t in (("insertion", D), ("rotation", A), ("tip_force", F), ("tip_moment", M)):
         if t.shape[0] not in (1, B):
             raise ValueError(f"{name} has batch size {t.shape[0]}, expected 1 or {B}")
@@ -229,37 +230,52 @@ def solve(scene: Scene | str, *, insertion=None, rotation=None, tip_force=None, 
         from .equilibrium import paper_scope_check
         loaded = (F.abs().sum(-1) > 0) | (M.abs().sum(-1) > 0)
         paper_scope_check(tube_tensors(scene, dtype, device), D, loaded)
-    return _solve(scene, tube_tensors(scene, dtype, device), D, A, F, M, opts, initial)
+    plan = plan_for(scene, dtype, device)
+    return _solve(scene, plan.tubes, D, A, F, M, opts, initial, plan)
 
 
-def _solve(scene: Scene, tubes: TubeTensors, D, A, F, M, opts: SolverOptions, initial):
+def _solve(scene: Scene, tubes: TubeTensors, D, A, F, M, opts: SolverOptions, initial,
+           plan: Plan | None = None):
     """The solve proper, on canonical ``(B, ...)`` tensors; differentiable through the implicit
-    backward when any input requires grad."""
+    backward when any input requires grad. ``plan`` carries reuse between calls (a private
+    one-off plan when ``None``)."""
     B = D.shape[0]
     t0 = time.perf_counter()
+    plan = plan if plan is not None else Plan(tubes)
     needs_grad = torch.is_grad_enabled() and any(
         t.requires_grad for t in (D, A, F, M, tubes.EI, tubes.GJ, tubes.length, tubes.straight,
                                   tubes.coef))
+    # U*(alpha) is 2 pi-periodic in every base rotation and q holds no absolute angle: solving
+    # at alpha - 2 pi k (k constant, no gradient) keeps cos/sin accurate for large angles.
+    A = A - (2 * math.pi) * torch.round(A.detach() / (2 * math.pi))
     D_in, A_in, F_in, M_in, tubes_in = D, A, F, M, tubes
     D, A, F, M = (t.detach() for t in (D, A, F, M))
-    tubes = TubeTensors(*(t.detach() for t in (tubes.EI, tubes.GJ, tubes.length,
-                                               tubes.straight, tubes.coef)))
-    orders = [opts.order] if opts.order is not None else list(range(2, opts.max_order + 1))
-    q_init = _initial_q(initial, B)
-    prev = None
-    for order in orders:
-        res = _solve_order(scene, tubes, D, A, F, M, order, opts, q_init)
+    if needs_grad:
+        tubes = TubeTensors(*(t.detach() for t in (tubes.EI, tubes.GJ, tubes.length,
+                                                   tubes.straight, tubes.coef)))
+    q_init, init_order, init_magnus = _initial_q(initial, B, scene.n_tubes)
+    # Automatic choices start at the warm start's discretization (so a continuation keeps the
+    # model whose branch it follows), else at order 2 and 8 Magnus steps.
+    if opts.order is not None:
+        order = opts.order
+    else:
+        order = min(init_order if init_order is not None else ORDER_START, opts.max_order)
+    n_magnus = opts.n_magnus or init_magnus or MAGNUS_START
+    # The accuracy is shared between the basis and the pose integration when both are automatic.
+    budget = opts.accuracy / 2 if opts.n_magnus is None else opts.accuracy
+    while True:
+        res = _solve_order(scene, tubes, D, A, F, M, order, n_magnus, opts, q_init, plan)
         if opts.order is not None:
             break
-        if prev is not None:
-            err = (res["tip"] - prev["tip"]).norm(dim=-1)
-            res["error_estimate"] = err
-            if bool((err <= opts.accuracy).all()):
-                break
-        prev = res
-        q_init = res["q"]
+        est, q_next = _order_estimate(scene, tubes, D, A, F, M, res, opts, plan)
+        res["error_estimate"] = est
+        # Elements that did not converge are reported as such; a higher order will not help.
+        if bool(((est <= budget) | ~res["converged"]).all()) or order >= opts.max_order:
+            break
+        order += 1
+        q_init = q_next
     if opts.n_magnus is None:
-        res = _refine_magnus(scene, tubes, D, A, F, M, res, opts)
+        res = _refine_magnus(scene, tubes, D, A, F, M, res, opts, plan)
     diff = None
     info = {"H": res["H"], "qmask": res["lay"]["qmask"], "ridge": opts.backward_ridge,
             "singular_tol": opts.singular_tol, "loaded": res["loaded"], "disc": res["disc"],
@@ -268,18 +284,114 @@ def _solve(scene: Scene, tubes: TubeTensors, D, A, F, M, opts: SolverOptions, in
     if needs_grad:
         diff = differentiable_outputs(res["q"], info, D_in, A_in, F_in, M_in, tubes_in)
     elapsed = time.perf_counter() - t0
-    eq = Equilibrium._from_solution(scene, tubes, res, opts, elapsed, diff)
-    failed = (~eq.converged).nonzero().flatten().tolist()
-    if failed and opts.on_failure != "ignore":
-        msg = (f"torchpvs.solve: {len(failed)} of {B} element(s) did not converge "
-               f"(first: element {failed[0]}: {eq.reason[failed[0]]})")
-        if opts.on_failure == "raise":
-            raise SolverError(msg)
-        warnings.warn(msg, RuntimeWarning, stacklevel=2)
+
+    def resolve(Dn, sel):
+        # Forces at equilibria a distance delta ~ 1e-7 m away (insertions Dn, rows sel of the
+        # batch). Where the section structure there equals this one (same active coordinates),
+        # q* moves by O(delta) and dU*/dD = dU/dD at fixed q to O(delta) (envelope theorem):
+        # no solve. Where a section of length delta appears, ONE Newton step from q (its error
+        # is O(delta^2) in the coordinates that move by O(delta), and the energy of the new
+        # section is quadratic in its coordinates to O(delta)).
+        An, Fn, Mn, q0 = A[sel], F[sel], M[sel], res["q"][sel]
+        disc = res["disc"]
+        nq = q0.shape[-1]
+        loaded = _loaded(Fn, Mn, opts)
+        lay, maps = plan.layout(tubes, Dn, An, Fn, Mn, loaded, disc, nq)
+        q1 = q0 * lay["qmask"]
+        moved = (lay["qmask"] != res["lay"]["qmask"][sel]).any(-1).nonzero().flatten()
+        if moved.numel():
+            prob = subset(Problem(lay, res["tab"], maps, res["with_load"], res["has_moment"]),
+                           moved)
+            q1 = q1.clone()
+            q1[moved] = _newton_step(q1[moved], prob)[0]
+        r = dict(res, q=q1, D=Dn, alpha=An, F=Fn, M=Mn, loaded=loaded)
+        return actuation(tubes, r)[0]
+
+    def resolve_all(options, initial_):
+        return _solve(scene, tubes, D, A, F, M, options, initial_, plan)
+
+    eq = Equilibrium._from_solution(scene, tubes, res, opts, elapsed, diff, plan, resolve,
+                                    resolve_all)
+    if opts.order is None and opts.on_failure != "ignore":
+        short = eq.converged & ~eq.accuracy_met
+        if bool(short.any()):
+            b = int(short.nonzero()[0])
+            warnings.warn(
+                f"torchpvs.solve: requested accuracy {opts.accuracy:g} m not reached for "
+                f"{int(short.sum())} of {B} element(s) (first: element {b}, error estimate "
+                f"{float(eq.error_estimate[b]):.3g} m at order {eq.order} "
+                f"(max_order={opts.max_order}), {res['disc'].n_magnus} Magnus steps); see "
+                f"Equilibrium.accuracy_met", AccuracyWarning, stacklevel=2)
+    if opts.on_failure != "ignore":
+        n_failed = int((~eq.converged).sum())
+        if n_failed:
+            first = int((~eq.converged).nonzero()[0])
+            msg = (f"torchpvs.solve: {n_failed} of {B} element(s) did not converge "
+                   f"(first: element {first}: {eq.reason[first]})")
+            if opts.on_failure == "raise":
+                raise SolverError(msg)
+            warnings.warn(msg, RuntimeWarning, stacklevel=2)
     return eq
 
 
-def _refine_magnus(scene, tubes, D, A, F, M, res, opts: SolverOptions):
+def _order_estimate(scene, tubes, D, A, F, M, res, opts: SolverOptions, plan: Plan):
+    """A posteriori tip error of ``res`` at its order: one Newton step of the next order from
+    the solution (the Legendre basis is hierarchical, so the solution pads exactly), and the
+    tip change it makes. Newton converges quadratically from there, so the step lands within
+    the square of the truncation error of the next order's solution: the estimate costs one
+    gradient/Hessian evaluation, one factorization and one tip pose instead of a full solve.
+    Returns ``(estimate (B,), coordinates at order + 1 to warm-start it)``."""
+    N = scene.n_tubes
+    order = res["order"] + 1
+    disc = replace(opts.discretization(order), n_magnus=res["disc"].n_magnus)
+    n_from = res["disc"].n_basis
+    nq = n_coordinates(N, disc.n_basis)
+    lay, maps = plan.layout(tubes, D, A, F, M, res["loaded"], disc, nq)
+    tab = disc.tables(D.dtype, D.device)
+    prob = Problem(lay, tab, maps, res["with_load"], res["has_moment"])
+    q = _resize_q(res["q"], N, n_from, disc.n_basis) * lay["qmask"]
+    q1, ok = _newton_step(q, prob)
+    tip1, _, _ = tip_pose(q1, lay, tab)
+    est = (tip1 - res["tip"]).norm(dim=-1)
+    est = torch.where(ok & torch.isfinite(est), est, torch.full_like(est, float("inf")))
+    return est, q1
+
+
+def _newton_step(q, prob: Problem):
+    """One undamped Newton step (Jacobi-scaled; Cholesky, and LU where the Hessian is indefinite,
+    as at an unstable equilibrium). Returns the new coordinates (``q`` where the step failed)
+    and the success mask. Large batches go in cache-sized chunks (see newton.CHUNK_BYTES)."""
+    B, nq = q.shape
+    chunk = max(16, newton.CHUNK_BYTES // (nq * nq * q.element_size()))
+    if B > 1.5 * chunk:
+        parts = []
+        for start in range(0, B, chunk):
+            rows = torch.arange(start, min(B, start + chunk), device=q.device)
+            parts.append(_newton_step(q[rows], subset(prob, rows)))
+        return tuple(torch.cat(p) for p in zip(*parts))
+    qmask = prob.lay["qmask"]
+    g, H = derivatives(q, prob)
+    H.diagonal(dim1=-2, dim2=-1).add_(1.0 - qmask)
+    _, scale = scaled_residual(g, H, torch.ones_like(g[:, 0]))
+    Hs = scale[:, :, None] * H * scale[:, None, :]
+    rhs = -(scale * g)[..., None]
+    L, info = torch.linalg.cholesky_ex(Hs)
+    sol = torch.cholesky_solve(rhs, L)
+    indefinite = (info != 0).nonzero().flatten()
+    if indefinite.numel():
+        sol_lu, info_lu = torch.linalg.solve_ex(Hs[indefinite], rhs[indefinite])
+        sol[indefinite], info[indefinite] = sol_lu, info_lu
+    q1 = q + scale * sol[..., 0] * qmask
+    ok = (info == 0) & torch.isfinite(q1).all(-1)
+    return torch.where(ok[:, None], q1, q), ok
+
+
+def _loaded(F, M, opts: SolverOptions) -> torch.Tensor:
+    """``(B,)`` elements with a tip load (or forced load coordinates)."""
+    return (F.abs().sum(-1) > 0) | (M.abs().sum(-1) > 0) | opts.load_coordinates
+
+
+def _refine_magnus(scene, tubes, D, A, F, M, res, opts: SolverOptions, plan: Plan):
     """Double the Magnus steps until the tip moves less than ``accuracy / 2`` (4th order: the
     remaining error of the finer count is ~1/15 of that change). The equilibrium coordinates do
     not depend on the pose integration unless a tip load is applied, so the check is a tip
@@ -293,23 +405,30 @@ def _refine_magnus(scene, tubes, D, A, F, M, res, opts: SolverOptions):
         if bool((est <= opts.accuracy / 2).all()) or 2 * m > _MAGNUS_MAX:
             break
         m *= 2
-        res = _solve_order(scene, tubes, D, A, F, M, res["order"], replace(opts, n_magnus=m),
-                           res["q"])
+        res = _solve_order(scene, tubes, D, A, F, M, res["order"], m, opts, res["q"], plan)
     if order_err is not None:
         res["error_estimate"] = order_err + est
     res["magnus_estimate"] = est
     return res
 
 
-def _initial_q(initial, B: int) -> torch.Tensor | None:
+def _initial_q(initial, B: int, N: int):
+    """Warm-start coordinates ``(B, nq)`` (or None) and the basis order and Magnus count they
+    came from (None when unknown)."""
     if initial is None:
-        return None
+        return None, None, None
     q = initial.q if isinstance(initial, Equilibrium) else torch.as_tensor(initial)
     if q.ndim == 1:
         q = q[None]
+    if not (q.is_floating_point() and bool(torch.isfinite(q).all())):
+        raise ValueError("initial: the warm-start coordinates must be finite floating-point "
+                         "numbers (an Equilibrium or a (B, nq) tensor)")
     if q.shape[0] not in (1, B):
         raise ValueError(f"initial has batch size {q.shape[0]}, expected 1 or {B}")
-    return q.expand(B, -1)
+    n_from = (q.shape[-1] - N) // (2 * N * (2 + N))
+    order = n_from - 1 if n_coordinates(N, n_from) == q.shape[-1] and n_from >= 1 else None
+    magnus = initial._ctx["disc"].n_magnus if isinstance(initial, Equilibrium) else None
+    return q.detach().expand(B, -1), order, magnus
 
 
 def _resize_q(q: torch.Tensor, N: int, n_from: int, n_to: int) -> torch.Tensor:
@@ -324,15 +443,14 @@ def _resize_q(q: torch.Tensor, N: int, n_from: int, n_to: int) -> torch.Tensor:
     return torch.cat([w, X.reshape(B, -1)], -1)
 
 
-def _solve_order(scene, tubes, D, A, F, M, order, opts, q_init):
-    disc = opts.discretization(order)
+def _solve_order(scene, tubes, D, A, F, M, order, n_magnus, opts, q_init, plan: Plan):
+    disc = replace(opts.discretization(order), n_magnus=n_magnus)
     N = scene.n_tubes
-    B = D.shape[0]
     dtype, device = D.dtype, D.device
-    loaded = (F.abs().sum(-1) > 0) | (M.abs().sum(-1) > 0) | opts.load_coordinates
-    lay = build_layout(tubes, D, A, F, M, loaded, disc)
-    tab = disc.tables(dtype, device)
+    loaded = _loaded(F, M, opts)
     nq = n_coordinates(N, disc.n_basis)
+    lay, maps = plan.layout(tubes, D, A, F, M, loaded, disc, nq)
+    tab = disc.tables(dtype, device)
     with_load = bool(loaded.any())
     has_moment = bool((M.abs().sum(-1) > 0).any()) or opts.load_coordinates
 
@@ -344,196 +462,17 @@ def _solve_order(scene, tubes, D, A, F, M, order, opts, q_init):
         q = _resize_q(q_init.to(dtype=dtype, device=device), N, n_from, disc.n_basis)
     else:
         q = _default_guess(lay, tab, disc, N)
-    qmask = lay["qmask"]
-    q = q * qmask
-
+    q = q * lay["qmask"]
     L_char = (lay["ell"].amax(-1) + D.amax(-1)).clamp(min=1e-6)           # (B,)
-    maps = build_maps(lay, tab, nq)
-    derivs = _derivative_fn(tab, maps, with_load, has_moment)
-    merit = _merit_fn(tab, maps, with_load, has_moment)
-
-    converged = torch.zeros(B, dtype=torch.bool, device=device)
-    residual = torch.full((B,), float("inf"), dtype=dtype, device=device)
-    iterations = torch.zeros(B, dtype=torch.long, device=device)
-    lam = torch.zeros(B, dtype=dtype, device=device)
-    eye = torch.eye(nq, dtype=dtype, device=device)
-    H = g = None
-    escapes = 0
-    for _ in range(opts.max_iter + 1):
-        g, H = derivs(q, lay)
-        g, H = _mask(g, H, qmask, eye)
-        diag = H.diagonal(dim1=-2, dim2=-1)
-        scale = diag.abs().clamp(min=torch.finfo(dtype).tiny) ** -0.5
-        residual = ((g.abs() * scale**2).amax(-1) * L_char)
-        residual = torch.where(torch.isfinite(residual), residual,
-                               torch.full_like(residual, float("inf")))
-        converged = residual < _tol(opts.tol, dtype)
-        if opts.method == "minimize" and escapes < 8 and bool(converged.any()):
-            # A converged saddle is not a minimum: leave it along negative curvature.
-            q, left = _escape_saddles(q, H, g, scale, converged, qmask, lay, merit, L_char)
-            converged = converged & ~left
-            escapes += int(bool(left.any()))
-        todo = ~converged & torch.isfinite(q).all(-1)
-        if not bool(todo.any()):
-            break
-        Hs = scale[:, :, None] * H * scale[:, None, :]
-        gs = scale * g
-        if opts.method == "minimize":
-            step, lam = _damped_step(Hs, gs, lam, eye)
-            step = scale * step
-            q_new, accepted = _line_search(merit, q, step, g, lay, todo)
-            lam = torch.where(accepted, lam * 0.25, torch.clamp(lam * 4 + 1e-6, max=1e6))
-        else:
-            step = scale * torch.linalg.solve(Hs + 1e-14 * eye, -gs[..., None])[..., 0]
-            # Cap the step at 1 rad of strain x length to stay in Newton's basin.
-            cap = (step.abs().amax(-1) * L_char).clamp(min=1.0)
-            q_new = q + step / cap[:, None]
-        q_new = torch.where(torch.isfinite(q_new).all(-1, keepdim=True), q_new, q)
-        q = torch.where(todo[:, None], q_new * qmask, q)
-        iterations = iterations + todo.long()
-
-    p, R, _ = tip_pose(q, lay, tab)
-    return {"q": q, "lay": lay, "tab": tab, "disc": disc, "order": order, "H": H, "g": g,
-            "converged": converged & torch.isfinite(p).all(-1), "residual": residual,
-            "iterations": iterations, "tip": p, "R": R, "D": D, "alpha": A, "F": F, "M": M,
-            "loaded": loaded, "with_load": with_load, "has_moment": has_moment}
-
-
-def _escape_saddles(q, H, g, scale, converged, qmask, lay, merit, L_char):
-    """For converged elements whose Hessian has a negative eigenvalue, step along the
-    eigenvector (sign chosen downhill) with a backtracking search on the energy. Returns the new
-    coordinates and the mask of elements that left a saddle."""
-    idx = converged.nonzero().flatten()
-    Hs = scale[idx, :, None] * H[idx] * scale[idx, None, :]
-    big = 10.0 * Hs.diagonal(dim1=-2, dim2=-1).abs().amax(-1) + 1.0
-    Hs = Hs + torch.diag_embed((1.0 - qmask[idx]) * big[:, None])
-    ev, vec = torch.linalg.eigh(Hs)
-    neg = ev[:, 0] < -1e-8
-    left = torch.zeros_like(converged)
-    if not bool(neg.any()):
-        return q, left
-    idx, v = idx[neg], vec[neg][:, :, 0] * scale[idx[neg]]
-    v = v * qmask[idx]
-    sign = torch.where((g[idx] * v).sum(-1) > 0, -1.0, 1.0).to(v.dtype)
-    v = sign[:, None] * v / (v.abs().amax(-1, keepdim=True) * L_char[idx, None]).clamp(min=1e-30)
-    lay_i = {k: t[idx] for k, t in lay.items()}
-    f0 = merit(q[idx], lay_i, q[idx])
-    t = torch.ones_like(f0)
-    new = q[idx].clone()
-    ok_all = torch.zeros_like(f0, dtype=torch.bool)
-    for _ in range(40):
-        trial = q[idx] + t[:, None] * v
-        ok = (merit(trial, lay_i, q[idx]) < f0) & ~ok_all
-        new = torch.where(ok[:, None], trial, new)
-        ok_all = ok_all | ok
-        if bool(ok_all.all()):
-            break
-        t = torch.where(ok_all, t, 0.5 * t)
-    q = q.clone()
-    q[idx] = new
-    left[idx] = ok_all
-    return q, left
-
-
-def _tol(tol: float, dtype: torch.dtype) -> float:
-    # float32 cannot resolve residuals below ~1e-6 of the strain scale.
-    return max(tol, 1e-5) if dtype == torch.float32 else tol
-
-
-def _mask(g, H, qmask, eye):
-    g = g * qmask
-    outer = qmask[:, :, None] * qmask[:, None, :]
-    H = H * outer + eye * (1.0 - qmask)[:, None, :]
-    return g, H
-
-
-def _damped_step(Hs, gs, lam, eye):
-    """Levenberg–Marquardt-damped Newton step on the Jacobi-scaled system; indefinite Hessians
-    are shifted to be positive definite so the step is a descent direction."""
-    A = Hs + lam[:, None, None] * eye
-    L, info = torch.linalg.cholesky_ex(A)
-    bad = info != 0
-    if bool(bad.any()):
-        ev = torch.linalg.eigvalsh(Hs[bad])[:, 0]
-        shift = torch.clamp(-ev, min=0.0) * 1.1 + 1e-3 + lam[bad]
-        lam = lam.clone()
-        lam[bad] = shift
-        A = Hs + lam[:, None, None] * eye
-        L, info = torch.linalg.cholesky_ex(A)
-    step = torch.cholesky_solve(-gs[..., None], L)[..., 0]
-    return step, lam
-
-
-def _line_search(merit, q, step, g, lay, todo, max_halvings: int = 30):
-    """Backtracking (Armijo) on the potential, per element."""
-    f0 = merit(q, lay, q)
-    slope = (g * step).sum(-1)
-    t = torch.ones_like(f0)
-    accepted_full = torch.zeros_like(todo)
-    done = ~todo
-    q_new = q.clone()
-    for i in range(max_halvings):
-        trial = q + t[:, None] * step
-        f = merit(trial, lay, q)
-        # Below the energy's rounding level the Armijo test is noise: accept the step then
-        # (the residual test, not the energy, decides convergence).
-        resolution = 8 * torch.finfo(f0.dtype).eps * f0.abs().clamp(min=1e-300)
-        ok = ((f <= f0 + 1e-4 * t * slope) | (-slope * t <= resolution)
-              | (f - f0 <= resolution)) & torch.isfinite(f) & ~done
-        q_new = torch.where(ok[:, None], trial, q_new)
-        if i == 0:
-            accepted_full = ok.clone()
-        done = done | ok
-        if bool(done.all()):
-            break
-        t = torch.where(done, t, 0.5 * t)
-    # Elements whose line search failed keep a tiny step along the direction (progress guard).
-    q_new = torch.where(done[:, None], q_new, q + t[:, None] * step)
-    return q_new, accepted_full
-
-
-def _derivative_fn(tab, maps, with_load: bool, has_moment: bool):
-    """Gradient and exact Hessian: analytic for the elastic energy (precomputed linear maps),
-    autograd (``vmap(jacfwd(grad))``) only for the tip-load term, which needs the Magnus chain."""
-    def load_only(q, lay, q_ref):
-        p, R, _ = tip_pose(q, lay, tab)
-        work = (lay["force"] * p).sum(-1)
-        if has_moment:
-            with torch.no_grad():
-                _, R0, _ = tip_pose(q_ref, lay, tab)
-            work = work + (lay["moment"] * _skew_vee(R @ R0.transpose(-1, -2))).sum(-1)
-        return -work
-
-    def grad_and_grad(q, lay, q_ref):
-        g = torch.func.grad(load_only)(q, lay, q_ref)
-        return g, g
-
-    load_hess = torch.func.vmap(torch.func.jacfwd(grad_and_grad, has_aux=True))
-
-    def derivs(q, lay):
-        g, H = elastic_grad_hess(q, maps)
-        if with_load:
-            Hl, gl = load_hess(q, lay, q.detach())
-            g = g + gl
-            H = H + 0.5 * (Hl + Hl.transpose(-1, -2))
-        return g, H
-
-    return derivs
-
-
-def _merit_fn(tab, maps, with_load: bool, has_moment: bool):
-    def merit(q, lay, q_ref):
-        with torch.no_grad():
-            same_batch = maps is not None and q.shape[0] == maps["W"].shape[0]
-            U = elastic_energy_maps(q, maps) if same_batch else elastic_energy(q, lay, tab)
-            if with_load:
-                p, R, _ = tip_pose(q, lay, tab)
-                U = U - (lay["force"] * p).sum(-1)
-                if has_moment:
-                    _, R0, _ = tip_pose(q_ref, lay, tab)
-                    U = U - (lay["moment"] * _skew_vee(R @ R0.transpose(-1, -2))).sum(-1)
-            return U
-    return merit
+    prob = Problem(lay, tab, maps, with_load, has_moment)
+    out = KERNELS[opts.kernel](q, prob, L_char, method=opts.method, tol=opts.tol,
+                               max_iter=opts.max_iter)
+    p, R, _ = tip_pose(out.q, lay, tab)
+    return {"q": out.q, "lay": lay, "tab": tab, "disc": disc, "order": order, "H": out.H,
+            "g": out.g, "converged": out.converged & torch.isfinite(p).all(-1),
+            "residual": out.residual, "iterations": out.iterations, "tip": p, "R": R, "D": D,
+            "alpha": A, "F": F, "M": M, "loaded": loaded, "with_load": with_load,
+            "has_moment": has_moment, "maps": maps}
 
 
 def _default_guess(lay, tab, disc, N):

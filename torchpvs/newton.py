@@ -1,0 +1,323 @@
+"""Stage 5a — the Newton kernel: one fixed discretization, a batch of elements, ``q -> q*``.
+
+The driver (:mod:`torchpvs.solver`) chooses the discretization, builds the layout and the
+``q``-independent maps, and calls a kernel from :data:`KERNELS` (a registry in the spirit of
+torchdiffeq's solvers, so a fused or GPU kernel can be added without touching the driver).
+
+The default kernel, ``"newton"``, is lean where a batch spends its time:
+
+* the gradient and exact Hessian come from :func:`torchpvs.mechanics.elastic_grad_hess` (GEMMs
+  and strided block writes, already zero on inactive coordinates: no dense mask pass);
+* one LAPACK Cholesky per iteration on the Jacobi-scaled, Levenberg–Marquardt-damped Hessian;
+  an eigenvalue shift only for the elements whose factorization fails;
+* the saddle test runs once per element, when it converges: a Cholesky of the undamped scaled
+  Hessian, and ``eigh`` only where that fails (a saddle, left along negative curvature);
+* the line search re-evaluates only the elements that rejected the full step;
+* converged elements leave the working batch (it is compacted when it shrinks by a quarter).
+"""
+
+from __future__ import annotations
+
+from typing import Callable, NamedTuple
+
+import torch
+
+from .mechanics import _skew_vee, elastic_energy_maps, elastic_grad_hess, tip_pose
+
+__all__ = ["KERNELS", "NewtonResult", "Problem", "derivatives", "merit", "newton", "subset"]
+
+
+class NewtonResult(NamedTuple):
+    """Kernel output for a batch of ``B`` elements with ``nq`` (padded) coordinates."""
+
+    q: torch.Tensor            # (B, nq) solution (inactive coordinates 0)
+    H: torch.Tensor            # (B, nq, nq) Hessian at q (identity on inactive rows)
+    g: torch.Tensor            # (B, nq) gradient at q
+    converged: torch.Tensor    # (B,) bool
+    residual: torch.Tensor     # (B,) scaled residual (SolverOptions.tol)
+    iterations: torch.Tensor   # (B,) long
+
+
+class Problem(NamedTuple):
+    """What a kernel needs: the layout, quadrature tables and precomputed maps of one batch."""
+
+    lay: dict
+    tab: dict
+    maps: dict
+    with_load: bool
+    has_moment: bool
+
+
+_SHARED = ("phi", "Qb")          # maps entries without a batch dimension
+
+
+def subset(prob: Problem, idx: torch.Tensor, merit_only: bool = False) -> Problem:
+    """The problem restricted to batch rows ``idx`` (the merit needs no Hessian constants)."""
+    lay = {k: v[idx] for k, v in prob.lay.items()}
+    maps = {k: (v if k in _SHARED else v[idx]) for k, v in prob.maps.items()
+            if not (merit_only and k == "H_const")}
+    return prob._replace(lay=lay, maps=maps)
+
+
+def derivatives(q: torch.Tensor, prob: Problem):
+    """Gradient ``(B, nq)`` and Hessian ``(B, nq, nq)`` of the total potential: analytic for the
+    elastic energy, autograd (``vmap(jacfwd(grad))``) only for the tip-load term, which needs the
+    Magnus chain."""
+    g, H = elastic_grad_hess(q, prob.maps)
+    if prob.with_load:
+        Hl, gl = _load_hessian(prob.tab, prob.has_moment)(q, prob.lay, q.detach())
+        g = g + gl
+        H = H + 0.5 * (Hl + Hl.transpose(-1, -2))
+    return g, H
+
+
+def _load_hessian(tab, has_moment: bool):
+    def load_only(q, lay, q_ref):
+        p, R, _ = tip_pose(q, lay, tab)
+        work = (lay["force"] * p).sum(-1)
+        if has_moment:
+            with torch.no_grad():
+                _, R0, _ = tip_pose(q_ref, lay, tab)
+            work = work + (lay["moment"] * _skew_vee(R @ R0.transpose(-1, -2))).sum(-1)
+        return -work
+
+    def grad_and_grad(q, lay, q_ref):
+        g = torch.func.grad(load_only)(q, lay, q_ref)
+        return g, g
+
+    return torch.func.vmap(torch.func.jacfwd(grad_and_grad, has_aux=True))
+
+
+@torch.no_grad()
+def merit(q: torch.Tensor, prob: Problem, q_ref: torch.Tensor) -> torch.Tensor:
+    """Total potential ``(B,)`` [J] (the moment's virtual work taken about ``q_ref``)."""
+    U = elastic_energy_maps(q, prob.maps)
+    if prob.with_load:
+        lay, tab = prob.lay, prob.tab
+        p, R, _ = tip_pose(q, lay, tab)
+        U = U - (lay["force"] * p).sum(-1)
+        if prob.has_moment:
+            _, R0, _ = tip_pose(q_ref, lay, tab)
+            U = U - (lay["moment"] * _skew_vee(R @ R0.transpose(-1, -2))).sum(-1)
+    return U
+
+
+def tolerance(tol: float, dtype: torch.dtype) -> float:
+    # float32 cannot resolve residuals below ~1e-6 of the strain scale.
+    return max(tol, 1e-5) if dtype == torch.float32 else tol
+
+
+def scaled_residual(g: torch.Tensor, H: torch.Tensor, L_char: torch.Tensor):
+    """``max_i |g_i| / H_ii * L`` and the Jacobi scale ``|H_ii|^-1/2``."""
+    diag = H.diagonal(dim1=-2, dim2=-1)
+    scale = diag.abs().clamp(min=torch.finfo(H.dtype).tiny) ** -0.5
+    res = (g.abs() * scale**2).amax(-1) * L_char
+    # An overflowed gradient or stiffness (inf / inf, or a zero scale) is not a small residual.
+    finite = torch.isfinite(res) & torch.isfinite(g).all(-1) & torch.isfinite(diag).all(-1)
+    res = torch.where(finite, res, torch.full_like(res, float("inf")))
+    return res, scale
+
+
+CHUNK_BYTES = 4 << 20    # Hessian bytes per chunk of a large batch (cache-sized working set)
+
+
+def newton(q: torch.Tensor, prob: Problem, L_char: torch.Tensor, *, method: str, tol: float,
+           max_iter: int) -> NewtonResult:
+    """Batched Newton on the total potential from ``q (B, nq)``; see the module docstring.
+
+    ``method="minimize"``: damped Newton with a line search and saddle escapes (returns a local
+    minimum whenever the iteration can reach one); ``"root"``: plain Newton on the gradient
+    (capped steps), converging to the nearest stationary point, stable or not.
+
+    Elements are independent: a batch whose Hessians exceed ``CHUNK_BYTES`` is solved in chunks
+    that stay in cache (the dense (nq x nq) passes are memory-bound at large B).
+    """
+    B, nq = q.shape
+    chunk = max(16, CHUNK_BYTES // (nq * nq * q.element_size()))
+    if B <= 1.5 * chunk:
+        return _newton(q, prob, L_char, method=method, tol=tol, max_iter=max_iter)
+    parts = []
+    for start in range(0, B, chunk):
+        rows = torch.arange(start, min(B, start + chunk), device=q.device)
+        parts.append(_newton(q[rows], subset(prob, rows), L_char[rows], method=method, tol=tol,
+                             max_iter=max_iter))
+    return NewtonResult(*(torch.cat(field) for field in zip(*parts)))
+
+
+def _newton(q: torch.Tensor, prob: Problem, L_char: torch.Tensor, *, method: str, tol: float,
+            max_iter: int) -> NewtonResult:
+    B, nq = q.shape
+    dtype, device = q.dtype, q.device
+    tol = tolerance(tol, dtype)
+    eye = torch.eye(nq, dtype=dtype, device=device)
+    q_out = q.clone()
+    # Hessian and gradient rows are stored only when elements leave the working batch (and at
+    # the end): an (nq x nq) copy per element per iteration is a full pass over memory.
+    H_out = g_out = None
+    residual = torch.full((B,), float("inf"), dtype=dtype, device=device)
+    iterations = torch.zeros(B, dtype=torch.long, device=device)
+    converged = torch.zeros(B, dtype=torch.bool, device=device)
+
+    idx = torch.arange(B, device=device)              # working set -> rows of the outputs
+    sub, Lc = prob, L_char
+    lam = torch.zeros(B, dtype=dtype, device=device)
+    tested = torch.zeros(B, dtype=torch.bool, device=device)   # passed the saddle test
+    escapes = 0
+    for _ in range(max_iter + 1):
+        qmask = sub.lay["qmask"]
+        g, H = derivatives(q, sub)
+        H.diagonal(dim1=-2, dim2=-1).add_(1.0 - qmask)
+        res, scale = scaled_residual(g, H, Lc)
+        conv = res < tol
+        residual[idx] = res
+        if method == "minimize" and escapes < 8:
+            new = conv & ~tested
+            if bool(new.any()):
+                q, left = _saddle_test(q, H, g, scale, new, sub, Lc)
+                tested = tested | (new & ~left)
+                conv = conv & ~left
+                if bool(left.any()):
+                    escapes += 1
+                    q_out[idx] = q
+        converged[idx] = conv
+        todo = ~conv & torch.isfinite(q).all(-1)
+        n_todo = int(todo.sum())
+        if n_todo == 0:
+            break
+        if n_todo <= 0.75 * idx.shape[0]:
+            # Converged (or non-finite) elements leave the working batch.
+            if H_out is None:
+                H_out = torch.empty(B, nq, nq, dtype=dtype, device=device)
+                g_out = torch.empty(B, nq, dtype=dtype, device=device)
+            out = (~todo).nonzero().flatten()
+            H_out[idx[out]], g_out[idx[out]] = H[out], g[out]
+            keep = todo.nonzero().flatten()
+            idx, q, g, H, scale, lam, tested, Lc = (t[keep] for t in
+                                                    (idx, q, g, H, scale, lam, tested, Lc))
+            sub = subset(sub, keep)
+            todo = torch.ones_like(lam, dtype=torch.bool)
+            qmask = sub.lay["qmask"]
+        Hs = scale[:, :, None] * H * scale[:, None, :]
+        gs = scale * g
+        if method == "minimize":
+            step, lam = _damped_step(Hs, gs, lam, eye)
+            step = scale * step
+            q_new, accepted = _line_search(q, step, g, sub, todo)
+            lam = torch.where(accepted, lam * 0.25, torch.clamp(lam * 4 + 1e-6, max=1e6))
+        else:
+            sol, _ = torch.linalg.solve_ex(Hs + 1e-14 * eye, -gs[..., None])
+            step = scale * sol[..., 0]
+            # Cap the step at 1 rad of strain x length to stay in Newton's basin.
+            cap = (step.abs().amax(-1) * Lc).clamp(min=1.0)
+            q_new = q + step / cap[:, None]
+        q_new = torch.where(torch.isfinite(q_new).all(-1, keepdim=True), q_new, q)
+        q = torch.where(todo[:, None], q_new * qmask, q)
+        iterations[idx] += todo.long()
+        q_out[idx] = q
+    if H_out is None:          # the working batch never shrank: it is the whole batch
+        H_out, g_out = H, g
+    else:
+        H_out[idx], g_out[idx] = H, g
+    return NewtonResult(q_out, H_out, g_out, converged, residual, iterations)
+
+
+def _saddle_test(q, H, g, scale, new, prob: Problem, L_char):
+    """Elements of ``new`` (just converged) whose undamped scaled Hessian is not positive
+    definite and has a negative eigenvalue are moved off the saddle (:func:`_escape`). Returns
+    the coordinates and the mask of elements that left."""
+    sel = new.nonzero().flatten()
+    Hs = scale[sel, :, None] * H[sel] * scale[sel, None, :]
+    _, info = torch.linalg.cholesky_ex(Hs)
+    bad = info != 0
+    left = torch.zeros_like(new)
+    if not bool(bad.any()):
+        return q, left
+    sel, Hs = sel[bad], Hs[bad]
+    ev, vec = torch.linalg.eigh(Hs)
+    neg = ev[:, 0] < -1e-8
+    if not bool(neg.any()):
+        return q, left
+    sel, v = sel[neg], vec[neg][:, :, 0] * scale[sel[neg]]
+    sub = subset(prob, sel, merit_only=True)
+    v = v * sub.lay["qmask"]
+    sign = torch.where((g[sel] * v).sum(-1) > 0, -1.0, 1.0).to(v.dtype)
+    v = sign[:, None] * v / (v.abs().amax(-1, keepdim=True) * L_char[sel, None]).clamp(min=1e-30)
+    q0 = q[sel]
+    f0 = merit(q0, sub, q0)
+    t = torch.ones_like(f0)
+    new_q = q0.clone()
+    ok_all = torch.zeros_like(f0, dtype=torch.bool)
+    for _ in range(40):
+        trial = q0 + t[:, None] * v
+        ok = (merit(trial, sub, q0) < f0) & ~ok_all
+        new_q = torch.where(ok[:, None], trial, new_q)
+        ok_all = ok_all | ok
+        if bool(ok_all.all()):
+            break
+        t = torch.where(ok_all, t, 0.5 * t)
+    q = q.clone()
+    q[sel] = new_q
+    left[sel] = ok_all
+    return q, left
+
+
+def _damped_step(Hs, gs, lam, eye):
+    """Levenberg–Marquardt-damped Newton step on the Jacobi-scaled system; indefinite Hessians
+    are shifted to be positive definite so the step is a descent direction."""
+    A = Hs.diagonal(dim1=-2, dim2=-1)
+    A.add_(lam[:, None])                 # in place: Hs is a temporary of the caller
+    L, info = torch.linalg.cholesky_ex(Hs)
+    A.sub_(lam[:, None])
+    bad = info != 0
+    if bool(bad.any()):
+        ev = torch.linalg.eigvalsh(Hs[bad])[:, 0]
+        lam = lam.clone()
+        lam[bad] = torch.clamp(-ev, min=0.0) * 1.1 + 1e-3 + lam[bad]
+        Lb, _ = torch.linalg.cholesky_ex(Hs[bad] + lam[bad, None, None] * eye)
+        L = L.clone()
+        L[bad] = Lb
+    step = torch.cholesky_solve(-gs[..., None], L)[..., 0]
+    return step, lam
+
+
+def _armijo(f, f0, t, slope):
+    # Below the energy's rounding level the Armijo test is noise: accept the step then
+    # (the residual test, not the energy, decides convergence).
+    resolution = 8 * torch.finfo(f0.dtype).eps * f0.abs().clamp(min=1e-300)
+    return ((f <= f0 + 1e-4 * t * slope) | (-slope * t <= resolution)
+            | (f - f0 <= resolution)) & torch.isfinite(f)
+
+
+def _line_search(q, step, g, prob: Problem, todo, max_halvings: int = 30):
+    """Backtracking (Armijo) on the potential, per element; after the full step only the
+    elements that rejected it are re-evaluated. Returns the new coordinates and the mask of
+    elements that accepted the full step."""
+    f0 = merit(q, prob, q)
+    slope = (g * step).sum(-1)
+    trial = q + step
+    accepted = _armijo(merit(trial, prob, q), f0, 1.0, slope) & todo
+    q_new = torch.where(accepted[:, None], trial, q)
+    rej = (todo & ~accepted).nonzero().flatten()
+    if rej.numel() == 0:
+        return q_new, accepted
+    sub = subset(prob, rej, merit_only=True)
+    qr, sr, f0r, slr = q[rej], step[rej], f0[rej], slope[rej]
+    t = torch.full_like(f0r, 0.5)
+    done = torch.zeros_like(f0r, dtype=torch.bool)
+    out = qr + t[:, None] * sr
+    for _ in range(max_halvings - 1):
+        trial = qr + t[:, None] * sr
+        ok = _armijo(merit(trial, sub, qr), f0r, t, slr) & ~done
+        out = torch.where(ok[:, None], trial, out)
+        done = done | ok
+        if bool(done.all()):
+            break
+        t = torch.where(done, t, 0.5 * t)
+    # Elements whose line search failed keep a tiny step along the direction (progress guard).
+    out = torch.where(done[:, None], out, qr + t[:, None] * sr)
+    q_new[rej] = out
+    return q_new, accepted
+
+
+#: Kernels by name: ``kernel(q0, problem, L_char, *, method, tol, max_iter) -> NewtonResult``.
+KERNELS: dict[str, Callable[..., NewtonResult]] = {"newton": newton}

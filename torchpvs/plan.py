@@ -1,0 +1,118 @@
+"""Stage 5b — the robot plan: what a solve can reuse from one call to the next.
+
+A :class:`Plan` belongs to one robot (its tubes), dtype and device. It holds the tube tensors
+and the layout and ``q``-independent maps of the last insertion state per discretization and
+batch shape, so that a call that only changes rotations or loads (a control step at fixed
+insertion, a rotation sweep, the re-solves of one call) rebuilds nothing but the angles. It
+holds no choice that changes results: a cold solve starts its automatic order at 2 whatever was
+solved before (a warm start continues at the order of its initial equilibrium). Quadrature and basis tables are
+cached per discretization (:meth:`torchpvs.sections.Discretization.tables`).
+
+``torchpvs.solve(scene, ...)`` looks the plan up by ``(scene.tubes, dtype, device)``, so casual
+users get the reuse too; :class:`torchpvs.CTR` owns one.
+"""
+
+from __future__ import annotations
+
+from collections import OrderedDict
+from dataclasses import dataclass, field
+
+import torch
+
+from .mechanics import build_maps
+from .scene import Scene
+from .sections import Discretization, TubeTensors, build_layout
+
+__all__ = ["Plan", "plan_for", "tube_tensors"]
+
+ORDER_START, MAGNUS_START = 2, 8
+
+
+def tube_tensors(scene: Scene, dtype: torch.dtype, device: torch.device) -> TubeTensors:
+    """The scene's tube properties as ``(1, N)`` tensors (``coef``: ``(1, N, 3, P)``)."""
+    P = max(1, max(len(ax) for t in scene.tubes for ax in t.precurvature))
+    coef = torch.zeros(1, scene.n_tubes, 3, P, dtype=dtype, device=device)
+    for j, t in enumerate(scene.tubes):
+        for d, ax in enumerate(t.precurvature):
+            if ax:
+                coef[0, j, d, :len(ax)] = torch.tensor(ax, dtype=dtype, device=device)
+
+    def row(values):
+        return torch.tensor([values], dtype=dtype, device=device)
+
+    return TubeTensors(
+        EI=row([t.bending_stiffness for t in scene.tubes]),
+        GJ=row([t.torsional_stiffness for t in scene.tubes]),
+        length=row([t.length for t in scene.tubes]),
+        straight=row([t.straight_length for t in scene.tubes]),
+        coef=coef,
+    )
+
+
+@dataclass(frozen=True)
+class _Memo:
+    """Layout and maps of the last insertion state (no-grad solves only)."""
+
+    D: torch.Tensor
+    loaded: torch.Tensor
+    disc: Discretization
+    tubes: TubeTensors
+    psi0_guide: torch.Tensor
+    lay: dict
+    maps: dict
+
+
+@dataclass(eq=False)
+class Plan:
+    """Reusable state of one robot for :func:`torchpvs.solve`.
+
+    Attributes:
+        tubes: the tube tensors (``(1, N)``, ``coef (1, N, 3, P)``).
+    """
+
+    tubes: TubeTensors
+    _memo: dict = field(default_factory=dict, repr=False)
+
+    def layout(self, tubes: TubeTensors, D, A, F, M, loaded, disc: Discretization, nq: int):
+        """``(lay, maps)`` for a batch; reused from the last call with the same insertions,
+        loaded mask, discretization and tube tensors (only angles and loads are replaced)."""
+        grad = torch.is_grad_enabled() and any(
+            t.requires_grad for t in (D, A, F, M, *tubes.__dict__.values()))
+        key = (disc, D.shape)
+        memo = self._memo.get(key)
+        if (not grad and memo is not None and memo.tubes is tubes
+                and memo.D.shape == D.shape and torch.equal(memo.D, D)
+                and torch.equal(memo.loaded, loaded)):
+            lay = dict(memo.lay)
+            # psi0 = alpha + (twist of the curved material held in the guide).
+            lay["psi0"] = memo.psi0_guide + A
+            lay["alpha"], lay["force"], lay["moment"] = A, F, M
+            maps = dict(memo.maps)
+            maps["psi0"] = lay["psi0"]
+            return lay, maps
+        lay = build_layout(tubes, D, A, F, M, loaded, disc)
+        maps = build_maps(lay, disc.tables(D.dtype, D.device), nq)
+        if not grad:
+            self._memo[key] = _Memo(D.clone(), loaded.clone(), disc, tubes,
+                                     lay["psi0"] - A, lay, maps)
+            if len(self._memo) > 4:
+                self._memo.pop(next(iter(self._memo)))
+        return lay, maps
+
+
+_PLANS: OrderedDict = OrderedDict()
+_MAX_PLANS = 16
+
+
+def plan_for(scene: Scene, dtype: torch.dtype, device: torch.device) -> Plan:
+    """The cached plan of a scene's robot (keyed by ``scene.tubes``, dtype and device; the
+    actuation and load of the scene do not matter). A small LRU cache: the 16 most recent."""
+    key = (scene.tubes, dtype, torch.device(device))
+    plan = _PLANS.get(key)
+    if plan is None:
+        plan = _PLANS[key] = Plan(tube_tensors(scene, dtype, torch.device(device)))
+        if len(_PLANS) > _MAX_PLANS:
+            _PLANS.popitem(last=False)
+    else:
+        _PLANS.move_to_end(key)
+    return plan
