@@ -1,4 +1,4 @@
-"""Snap-through of the section III-B robot (Renda et al. 2021; physics.md hard cases).
+"""Snap-through of the section III-B robot (Renda et al. 2021; docs/physics.md hard cases).
 
 The inner tube is rotated at the orifice from 0 to 360 deg and back with
 ``torchpvs.continuation``: the followed stable branch ends at a fold past 180 deg, where the

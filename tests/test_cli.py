@@ -1,4 +1,4 @@
-"""The ``torchpvs`` command line: exit codes, the JSON contract of conventions.md, one-line
+"""The ``torchpvs`` command line: exit codes, the JSON contract of docs/conventions.md, one-line
 errors, tables, plots and the demo.
 
 Error paths never reach a solver. The output format is checked against fake solvers injected
@@ -439,7 +439,7 @@ def test_pvs_solve_json(pvs_json):
     obj = strict_json(out)
     assert set(obj) == EXPECTED_KEYS | set(EXTENSION_KEYS) | {"backbone"}
     assert obj["model"] == "pvs" and obj["converged"] is True
-    # Fig. 3: D1 = Ls1, the outer tube's transition sits at the orifice (physics.md, kinks).
+    # Fig. 3: D1 = Ls1, the outer tube's transition sits at the orifice (docs/physics.md, kinks).
     assert obj["force_kink"] == [True, False]
     assert obj["actuation_forces_insertion"][0] < obj["actuation_forces"][0]
     assert len(obj["tip_position"]) == 3 and np.array(obj["tip_rotation"]).shape == (3, 3)

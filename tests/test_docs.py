@@ -188,7 +188,6 @@ def test_every_docs_page_is_linked_from_the_index():
     assert not pages - linked, f"not linked from docs/index.md: {sorted(map(str, pages - linked))}"
 
 
-@pytest.mark.xfail(strict=False, reason="references being repointed")
 def test_no_reference_to_notes_outside_the_repository():
     """Users who install or clone torchpvs have only the repository: no file may point to the
     development notes that live beside it (their content is in docs/conventions.md and

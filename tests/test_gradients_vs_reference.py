@@ -7,7 +7,7 @@ The PVS side is one high-accuracy solve differentiated by the custom backward
 touches torch: it re-solves the Kirchhoff shooting problem (tol 1e-12, warm-started on the same
 branch) at ``x +- h`` for every insertion, rotation and the outer tube's Young's modulus.
 Scenes: the seeded random 2-/3-tube robots of ``test_pvs_vs_reference.py``, skipping those with a
-kink within 1 mm of the orifice (U* is not differentiable there: physics.md, "Kinks"), those at
+kink within 1 mm of the orifice (U* is not differentiable there: docs/physics.md, "Kinks"), those at
 a nesting limit, and those where the reference cannot be put on PVS's stable branch.
 """
 
@@ -29,7 +29,7 @@ ACCURATE = SolverOptions(order=6, n_magnus=32, compute_forces=False)
 
 def _smooth(scene) -> bool:
     """No kink within 1 mm of the orifice and no two bases together (``D_j = D_j-1`` is the
-    nesting limit of conventions.md: only one-sided derivatives exist there)."""
+    nesting limit of docs/conventions.md: only one-sided derivatives exist there)."""
     return not near_kink(scene) and bool(np.diff(scene.actuation.insertion).min() > 1e-3)
 
 

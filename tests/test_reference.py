@@ -1,6 +1,6 @@
 """The standard-model (Kirchhoff rod, shooting) reference solver against independent references:
 closed forms, published numbers, physics identities and energy principles. Each test names its
-source. Frames and signs: shared/notes/conventions.md; model: shared/notes/physics.md."""
+source. Frames and signs: docs/conventions.md; model: docs/physics.md."""
 
 from __future__ import annotations
 
@@ -25,7 +25,7 @@ def two_tubes(L=(0.1, 0.1), k1=9.9, k2=13.8, alpha2=0.0, D=(0.0, 0.0), straight=
 
 def arc(u_xy: np.ndarray, L: float) -> tuple[np.ndarray, np.ndarray]:
     """Closed-form tip of a constant-curvature backbone ``R' = R hat([ux, uy, 0])`` from the
-    origin along +z: the tangent turns toward ``d = (uy, -ux, 0)/|u|`` (conventions.md: u*_y > 0
+    origin along +z: the tangent turns toward ``d = (uy, -ux, 0)/|u|`` (docs/conventions.md: u*_y > 0
     bends toward +x). Returns (tip position, tip rotation of the backbone frame)."""
     ux, uy = u_xy
     kappa = math.hypot(ux, uy)
@@ -166,7 +166,7 @@ def random_three_tubes(seed: int = 3) -> Scene:
 
 @pytest.mark.parametrize("which", ["fig3", "random3"])
 def test_sum_of_actuation_torques_is_zero(which):
-    """physics.md: rotating all tubes together costs no energy, so sum_j tau_alpha_j = 0
+    """docs/physics.md: rotating all tubes together costs no energy, so sum_j tau_alpha_j = 0
     (unloaded scenes). Also tau_alpha_j matches the finite difference dU*/dalpha_j."""
     sc = load_scene("renda2021_fig3") if which == "fig3" else random_three_tubes()
     sol = solve_standard(sc, compute_forces=False, compute_stability=False)
@@ -174,7 +174,7 @@ def test_sum_of_actuation_torques_is_zero(which):
     tau = sol.actuation_torques
     assert np.abs(tau).max() > 1e-4
     assert abs(tau.sum()) <= 1e-9 * np.abs(tau).max()
-    # tau_alpha = dU*/dalpha (conventions.md), central differences from warm starts
+    # tau_alpha = dU*/dalpha (docs/conventions.md), central differences from warm starts
     h = 1e-5
     j = 1
     energies = []
@@ -191,9 +191,9 @@ def test_sum_of_actuation_torques_is_zero(which):
 # 4. Configurational force
 
 def test_configurational_force_single_tube():
-    """Bigoni et al. 2015 / physics.md: U* = 1/2 EI kappa^2 * (curved length in the guide) + 0
+    """Bigoni et al. 2015 / docs/physics.md: U* = 1/2 EI kappa^2 * (curved length in the guide) + 0
     (the free part takes its precurvature), so retracting (larger D) costs
-    dU*/dD = +1/2 EI kappa^2 (positive = the actuator pulls back, conventions.md). A tube whose
+    dU*/dD = +1/2 EI kappa^2 (positive = the actuator pulls back, docs/conventions.md). A tube whose
     straight part spans the orifice feels nothing."""
     kappa = 20.0
     t = Tube(E, G, 0.0, 1.6e-3, 0.0, 0.15, ((), (kappa,), ()))
@@ -213,7 +213,7 @@ def test_configurational_forces_two_tubes_closed_form():
     both partly in the guide: there is no torsion (all precurvatures in one plane), so
     U* = sum_j 1/2 EI_j k_j^2 D_j + e_o (L_1 - D_1) with the overlap density
     e_o = 1/2 EI1 EI2 (k1 - k2)^2 / (EI1 + EI2) (eq. (31) inserted in the energy of
-    physics.md). Hence tau_D1 = 1/2 EI1 k1^2 - e_o and tau_D2 = 1/2 EI2 k2^2."""
+    docs/physics.md). Hence tau_D1 = 1/2 EI1 k1^2 - e_o and tau_D2 = 1/2 EI2 k2^2."""
     k1, k2 = 10.0, 30.0
     sc = two_tubes(L=(0.12, 0.2), k1=k1, k2=k2, D=(0.03, 0.05))
     EI1, EI2 = (t.bending_stiffness for t in sc.tubes)
@@ -286,7 +286,7 @@ def test_tip_moment_pure_bending():
 
 
 def test_loaded_maxwell_betti_and_load_potential():
-    """A tip force is conservative, so with U* = elastic - F.p_tip (physics.md):
+    """A tip force is conservative, so with U* = elastic - F.p_tip (docs/physics.md):
     (a) Maxwell-Betti: the tip compliance dp_tip/dF = -d2U*/dF2 is symmetric;
     (b) envelope theorem: tau_alpha_j = dU*/dalpha_j at equilibrium (checked by finite
         differences of U*, which includes the load potential);
@@ -345,7 +345,7 @@ def test_warm_start_fewer_iterations():
 # Energy principle: the shooting solution is a stationary point of the reduced energy
 
 def test_shooting_solution_is_stationary_for_the_energy():
-    """physics.md: equilibrium = stationarity of U. With the bending minimised pointwise
+    """docs/physics.md: equilibrium = stationarity of U. With the bending minimised pointwise
     (unloaded), the Euler-Lagrange equations of the reduced energy
     int 1/2 GJ_j (psi_j' - u*_jz)^2 - |sum EI_j Rz(psi_j) u*_j|^2 / (2 sum EI_j) ds are
     m_j' = d/dpsi_j of the second term = -(v . J w_j) / K with w_j = EI_j Rz(psi_j) u*_j,
@@ -390,7 +390,7 @@ def test_shooting_solution_is_stationary_for_the_energy():
 # Contract, edge cases, argument checks
 
 def test_contract_json_and_backbone():
-    """conventions.md: the JSON keys, plain values, no NaN, backbone from orifice to tip."""
+    """docs/conventions.md: the JSON keys, plain values, no NaN, backbone from orifice to tip."""
     sol = solve_standard(load_scene("renda2021_fig3"))
     c = sol.as_contract(backbone_points=7)
     text = json.dumps(c, allow_nan=False)

@@ -1,4 +1,4 @@
-"""Stage 1 — the scene: every validation rule of scene.py and shared/notes/conventions.md,
+"""Stage 1 — the scene: every validation rule of scene.py and docs/conventions.md,
 built-in scenes against the paper, YAML/JSON loading, round trips and ``--set`` overrides."""
 
 from __future__ import annotations

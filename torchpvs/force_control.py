@@ -1,7 +1,7 @@
 """Force-controlled equilibria: ``solve_force_controlled(scene, forces=..., torques=...)``.
 
 Some actuator coordinates are commanded by a generalized force — an insertion force ``tau_Dj``
-[N] or a rotation torque ``tau_alphaj`` [N·m], conventions.md signs: ``tau = dU*/dx``, the force
+[N] or a rotation torque ``tau_alphaj`` [N·m], docs/conventions.md signs: ``tau = dU*/dx``, the force
 the actuator applies along increasing ``x`` to hold the robot — and the others by a position
 (``D_j`` [m], ``alpha_j`` [rad]). The solver finds the free actuator coordinates ``x_f`` with
 ``tau_f(x) = commanded`` by a Levenberg-Marquardt-damped Newton iteration on ``x_f``:
@@ -16,7 +16,7 @@ the actuator applies along increasing ``x`` to hold the robot — and the others
   ``ell`` the longest tube, so that the damping and the step norm are unit-consistent.
 
 Zero-stiffness modes. Without a tip load, rotating every tube together costs no energy
-(``sum_j tau_alphaj = 0`` identically, physics.md): when *all* rotations are torque-controlled,
+(``sum_j tau_alphaj = 0`` identically, docs/physics.md): when *all* rotations are torque-controlled,
 the common rotation is undetermined. It is not fixed by a constraint: the Newton step is the
 **least-norm step** (truncated-SVD pseudo-inverse of the scaled ``K_ff``), which has no component
 along the zero mode, so the common rotation keeps its initial value (the mean of the free
@@ -137,7 +137,7 @@ def solve_force_controlled(
             ``None``) = ``alpha_j`` position-controlled.
         insertion, rotation: ``(N,)`` or ``(B, N)`` [m], [rad]: the commanded positions of the
             position-controlled coordinates and the starting point of the free ones (default
-            the scene's actuation). Must be a valid actuation (conventions.md).
+            the scene's actuation). Must be a valid actuation (docs/conventions.md).
         tip_force, tip_moment: ``(3,)`` or ``(B, 3)`` [N], [N·m], base frame (default the
             scene's load).
         options: :class:`~torchpvs.SolverOptions` of the inner equilibrium solves. An automatic
@@ -339,7 +339,7 @@ def solve_force_controlled(
                     rule = f"D_{j + 1} >= D_{j}" if j > 0 else "D_1 >= 0"
                     reason[b] = (f"no equilibrium in the valid stroke: the commanded forces "
                                  f"drive insertion D_{j + 1} against the limit {rule} "
-                                 f"(conventions.md) at D = {x[b, :N].tolist()} m; residual "
+                                 f"(docs/conventions.md) at D = {x[b, :N].tolist()} m; residual "
                                  f"{nm}: {float(r[b, k]):.6g} {unit}")
                 else:
                     kk = float(K[b, k, k]) * (ell**2 if k < N else 1.0)

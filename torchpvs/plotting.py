@@ -1,6 +1,6 @@
 """3D backbone plots of a concentric tube robot (matplotlib, headless-safe).
 
-Frames follow ``shared/notes/conventions.md``: the base frame sits at the insertion orifice with
+Frames follow ``docs/conventions.md``: the base frame sits at the insertion orifice with
 ``z`` along the insertion axis, out of the orifice. Data are given in metres and drawn in mm.
 
 matplotlib is imported lazily inside the functions, so importing this module is cheap and never

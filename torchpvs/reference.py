@@ -4,7 +4,7 @@ that the PVS solver is checked against.
 This module is deliberately independent of the PVS pipeline (``sections``/``basis``/
 ``mechanics``/``solver``): it shares only the scene dataclasses. It follows Rucker, Webster,
 Chirikjian & Cowan (IJRR 2010) and Dupont, Lock, Itkowitz & Butler (T-RO 2010) in the frames and
-signs of ``shared/notes/conventions.md``.
+signs of ``docs/conventions.md``.
 
 Model
 -----
@@ -399,7 +399,7 @@ class StandardSolution:
         return self.state_at(s)[0:3].T.copy()
 
     def as_contract(self, backbone_points: int | None = None) -> dict[str, Any]:
-        """The JSON-ready dict of conventions.md (plain Python values, no NaN)."""
+        """The JSON-ready dict of docs/conventions.md (plain Python values, no NaN)."""
 
         def flist(a: Any) -> list:
             return [_fin(v) for v in np.asarray(a, float).ravel()]

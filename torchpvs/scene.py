@@ -1,6 +1,6 @@
 """Stage 1 — the scene: tubes, actuation and loads as frozen, validated dataclasses.
 
-The format, frames and signs are fixed by ``shared/notes/conventions.md``:
+The format, frames and signs are fixed by ``docs/conventions.md``:
 
 * SI units everywhere (m, Pa, N, N·m, rad).
 * Base frame at the insertion orifice, z along the insertion axis, out of the orifice.
@@ -196,7 +196,7 @@ class Scene:
     """A concentric tube robot: tubes (outermost first), actuation and tip load.
 
     Construct it from a mapping with :meth:`from_dict`, from a file or built-in name with
-    :func:`load_scene`, or directly; ``__post_init__`` validates every rule of conventions.md.
+    :func:`load_scene`, or directly; ``__post_init__`` validates every rule of docs/conventions.md.
     """
 
     tubes: tuple[Tube, ...]
@@ -243,7 +243,7 @@ class Scene:
     # -- (de)serialisation -------------------------------------------------------------------
     @classmethod
     def from_dict(cls, data: Mapping[str, Any]) -> Scene:
-        """Build and validate a scene from the mapping of conventions.md.
+        """Build and validate a scene from the mapping of docs/conventions.md.
 
         The optional sections ``load`` and ``tubes[i].precurvature`` mean "none" (zero load,
         a straight tube) only when absent or ``null`` (an empty ``load:`` in YAML) or an empty
@@ -281,7 +281,7 @@ class Scene:
         return cls(tubes, actuation, load)
 
     def to_dict(self) -> dict[str, Any]:
-        """The mapping of conventions.md (round-trips through :meth:`from_dict`)."""
+        """The mapping of docs/conventions.md (round-trips through :meth:`from_dict`)."""
         tubes = []
         for t in self.tubes:
             tubes.append({
@@ -542,7 +542,7 @@ def load_scene(source: str | Path | Mapping[str, Any] | Scene,
 
     Args:
         source: file path (``.yaml``, ``.yml``, ``.json``), a built-in name (see
-            :func:`builtin_scenes`), a mapping in the format of conventions.md, or a Scene.
+            :func:`builtin_scenes`), a mapping in the format of docs/conventions.md, or a Scene.
         overrides: ``KEY=VALUE`` strings applied before validation (see :func:`apply_overrides`).
     """
     if isinstance(source, Scene):

@@ -37,7 +37,7 @@ class TubeTensors:
     """Tube properties as tensors, broadcastable to ``(B, N)`` (``coef``: ``(B, N, 3, P)``).
 
     ``EI``, ``GJ`` [N·m²]; ``length``, ``straight`` [m]; ``coef`` precurvature polynomial
-    coefficients in the arc length from the start of the curved part (conventions.md).
+    coefficients in the arc length from the start of the curved part (docs/conventions.md).
     """
 
     EI: torch.Tensor
@@ -140,7 +140,7 @@ def build_layout(tubes: TubeTensors, D: torch.Tensor, alpha: torch.Tensor,
     qmask = torch.cat([w_mask, sec_mask[..., None].expand(B, S, 2 + N, n).reshape(B, -1)], -1)
 
     # Fixed guide quantities: twist of precurved material and the bending energy it stores
-    # while held straight (1/2 EI |u*_xy|^2 per metre, physics.md).
+    # while held straight (1/2 EI |u*_xy|^2 per metre, docs/physics.md).
     guided = torch.minimum(D, L)                                    # guided material length
     t_guide = torch.clamp(guided - Ls, min=0.0)                     # curved part inside the guide
     psi0 = alpha + _poly_antiderivative_value(coef[..., 2, :], t_guide)

@@ -77,7 +77,7 @@ def test_force_moves_the_carriage_at_the_damping_speed():
 
 def test_stroke_limits_are_inelastic_stops():
     """Pulling the outer tube back beyond its stroke stops it at the limit with zero velocity
-    and raises the at_limit flag; the nesting rules of conventions.md hold throughout."""
+    and raises the at_limit flag; the nesting rules of docs/conventions.md hold throughout."""
     robot = fig3_two_tube()
     rb = RobotBatch(robot, CarriageModel(kind="second_order"), 1)
     rb.set_state(np.array([0]), np.array([[0.002, 0.1, 0.0, 0.0]]))
@@ -239,7 +239,7 @@ def _energy_rollout(control_period: float, seconds: float = 1.5) -> np.ndarray:
 def test_relaxation_dissipates_energy_even_at_kinks():
     """tau_cmd = 0 with damping: b xdot = -g = -dU*/dx is a gradient flow, so U* must not grow.
     The linearly implicit step alone overshoots where U*(x) has a kink (a straight-to-curved
-    transition crossing a tube end, physics.md "sliding section boundaries"): an O(h) rise, up
+    transition crossing a tube end, docs/physics.md "sliding section boundaries"): an O(h) rise, up
     to 8.6e-4 J per step on these robots. The Armijo acceptance of envs/dynamics.py (issue 14,
     item 9) rejects such steps, so U* never rises beyond round-off, at either period, and every
     robot's energy drops overall."""
@@ -253,7 +253,7 @@ def test_relaxation_dissipates_energy_even_at_kinks():
 @given(seed=st.integers(0, 2**31 - 1), control=st.sampled_from(["force", "joint"]))
 @settings(max_examples=6, deadline=None)
 def test_limits_never_violated_under_random_actions(seed, control):
-    """conventions.md nesting rules and the strokes hold for every state of a random rollout."""
+    """docs/conventions.md nesting rules and the strokes hold for every state of a random rollout."""
     venv = CTRReachVecEnv(4, control=control, max_episode_steps=8)
     venv.seed(seed)
     venv.reset()
@@ -278,7 +278,7 @@ def test_limits_never_violated_under_random_actions(seed, control):
 ])
 def test_no_nan_over_many_random_steps(robot, n_env, steps):
     """Random actions on the presets and the section III-B robot (the snapping hard case of
-    physics.md): observations and rewards always finite, through snaps and resets."""
+    docs/physics.md): observations and rewards always finite, through snaps and resets."""
     venv = CTRReachVecEnv(n_env, robot=robot, max_episode_steps=30, snap_mode="continue")
     venv.seed(1)
     obs = venv.reset()

@@ -1,9 +1,9 @@
 """Scenes and helpers shared by the hard-case suite (``tests/hard``) and the benchmarks
 (``benchmarks/speed_vs_error.py``, ``benchmarks/scaling.py``).
 
-Hard cases: shared/notes/physics.md, "Hard cases the solver must survive". Scenes of the paper:
+Hard cases: docs/physics.md, "Hard cases the solver must survive". Scenes of the paper:
 Renda, Messer, Rucker, Boyer, IEEE RA-L 2021 (sections III-B and III-C / Fig. 3, Table I).
-Frames, signs and the scene rules: shared/notes/conventions.md.
+Frames, signs and the scene rules: docs/conventions.md.
 """
 
 from __future__ import annotations
@@ -20,7 +20,7 @@ from torchpvs.scene import Actuation, Load, Scene, Tube
 MM = 1e-3
 E_NITINOL, G_NITINOL = 58.0e9, 21.5e9          # Table I of Renda et al. 2021
 D1_FIG3 = 93.5 * MM
-# Fig. 3 sweeps (physics.md, section III-C): D1 = 93.5 mm, alpha1 = 0.
+# Fig. 3 sweeps (docs/physics.md, section III-C): D1 = 93.5 mm, alpha1 = 0.
 SWEEPS = {
     "full": (208.5 * MM, list(range(0, 281, 20))),      # full overlap, alpha2 = 0..280 deg
     "partial": (170.5 * MM, list(range(0, 201, 20))),   # partial overlap, alpha2 = 0..200 deg

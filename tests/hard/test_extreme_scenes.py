@@ -1,4 +1,4 @@
-"""Hard cases of physics.md: very unequal stiffnesses (1:100), high precurvature (> 30 1/m, up to
+"""Hard cases of docs/physics.md: very unequal stiffnesses (1:100), high precurvature (> 30 1/m, up to
 40 1/m), tubes fully retracted into the guide.
 
 Independent references: closed forms (paper eq. 31 for aligned torsionless tubes: the overlap
@@ -30,7 +30,7 @@ def _threads():
 
 def arcs_tip(pieces) -> np.ndarray:
     """Tip of a planar chain of arcs ``[(curvature about y [1/m], length [m]), ...]`` leaving
-    the orifice along +z (a positive curvature bends toward +x, conventions.md)."""
+    the orifice along +z (a positive curvature bends toward +x, docs/conventions.md)."""
     x = z = th = 0.0
     for k, ell in pieces:
         if abs(k) < 1e-12:
@@ -145,14 +145,14 @@ def test_inner_tube_fully_retracted(extra):
     if extra > 0:
         assert float(e3.actuation_forces[0, 2]) == 0.0
         assert abs(r.actuation_forces[2]) < 1e-6
-    else:   # the tube's end at the orifice: a kink; retraction side 0 (conventions.md)
+    else:   # the tube's end at the orifice: a kink; retraction side 0 (docs/conventions.md)
         assert bool(e3.force_kink[0, 2]) and float(e3.actuation_forces[0, 2]) == 0.0
 
 
 def test_all_tubes_retracted():
     """Every tube inside the guide: nothing beyond the orifice. Tip at the origin, no
     coordinates, converged and stable; the energy is the precurved material held straight,
-    sum 1/2 EI kappa^2 Lc (physics.md), as in the reference."""
+    sum 1/2 EI kappa^2 Lc (docs/physics.md), as in the reference."""
     from hardcases import fig3
     sc = fig3(D1=0.2, D2=0.31)
     eq = tp.solve(sc)

@@ -1,4 +1,4 @@
-"""Hard case: the same scene in float32 and float64 (physics.md, "Hard cases"; float64 is the
+"""Hard case: the same scene in float32 and float64 (docs/physics.md, "Hard cases"; float64 is the
 default for physics). Pass: float32 converges and its tip is within 1e-4 m of float64's.
 
 At a mirror-symmetric actuation (alpha2 = 180 deg with planar precurvatures) the two stable
@@ -73,7 +73,7 @@ def test_random_scenes(seed):
 
 @pytest.mark.parametrize("case", ["1:100", "kappa 40", "6 tubes"])
 def test_extreme_scenes(case):
-    """Stiffness ratio 1:100, precurvature 40 1/m, a 6-tube robot (hard cases of physics.md)."""
+    """Stiffness ratio 1:100, precurvature 40 1/m, a 6-tube robot (hard cases of docs/physics.md)."""
     sc = {"1:100": two_tubes(10.0, 30.0, od1=3.0e-3, id1=2.0e-3, od2=0.9e-3, Ls1=0.05,
                              Ls2=0.1, D=(0.05, 0.1), alpha=(0.0, 2.0)),
           "kappa 40": two_tubes(40.0, 40.0, Lc1=0.06, Lc2=0.09, Ls1=0.05, Ls2=0.1,

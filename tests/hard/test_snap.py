@@ -1,4 +1,4 @@
-"""The snap of the section III-B robot (physics.md, hard cases): the fold that
+"""The snap of the section III-B robot (docs/physics.md, hard cases): the fold that
 ``torchpvs.continuation`` locates while rotating the inner tube must lie within 1 deg of the
 fold of the independent standard model (shooting, torchpvs.reference), located there by its own
 warm-started sweep and bisection on "the branch still exists and is stable"."""
