@@ -12,9 +12,9 @@ Multi-stability: the reference's default guess (zero torsion) can land on an uns
 equilibrium and PVS's default (minimize) picks a stable one, so the two are only compared on the
 same stable branch; along the Fig. 3 sweeps both solvers follow the branch with warm starts.
 
-Known discrepancies are marked ``xfail(strict=True)`` with the measured numbers (see the doc):
-actuation forces at ``D_j = 0`` and at a kink, and the automatic ``accuracy`` ignoring the pose
-integration error.
+Forces at ``D_j = 0`` and at kinks, and the automatic ``accuracy`` (basis order and pose
+integration), are compared in the tests below and in ``tests/hard`` (no known discrepancy is
+left marked ``xfail``).
 """
 
 from __future__ import annotations
@@ -339,7 +339,7 @@ RANDOM_TIP_TOL = 1e-5
 def test_random_scene_matches_reference(seed):
     """Seeded random 2- and 3-tube scenes vs the reference on the same stable branch: tip within
     the default accuracy (1e-5 m), actuation torques 1e-3 of max|tau|, energy 1e-5 relative,
-    actuation forces 1e-3 of max|tau_D| away from kinks and from D_j = 0 (see the xfail below)."""
+    actuation forces 1e-3 of max|tau_D| away from kinks and from D_j = 0 (kinks: tests/hard)."""
     check_random_scene(seed)
 
 

@@ -128,7 +128,8 @@ class FoldEvent:
         tip_before: ``(3,)`` [m] tip on the lost branch at ``s_lo``.
         tip_after: ``(3,)`` [m] tip after the snap (``method="minimize"`` at ``s_hi``).
         tip_jump: ``|tip_after - tip_before|`` [m].
-        margin_before: stability margin at ``s_lo`` (J·m², >= 0 on a stable branch, small near
+        margin_before: stability margin at ``s_lo`` (the dimensionless smallest stiffness
+            eigenvalue, ``Equilibrium.min_stiffness_eigenvalue``: > 0 on a stable branch, small near
             the fold); ``margin_after``: at the landing point.
         index: index into the result's arrays of the point after the snap.
     """

@@ -420,6 +420,22 @@ def _paper_actuation(tubes, res, tol: float = 1e-12):
     return forces, torques
 
 
+def _coinciding_cuts(L, Ls, D, curved, tol: float) -> torch.Tensor:
+    """``(B, N)``: a cut that moves with ``D_j`` (tube j's distal end, or its straight-to-curved
+    transition beyond the orifice) coincides with a cut of another tube. Moving ``D_j`` then
+    changes which material lies on either side of the cut, so ``U*(D_j)`` has a kink (e.g. the
+    inner tip retracting past the outer tip releases the overlap's energy density)."""
+    B, N = D.shape
+    ell = (L - D).clamp(min=0.0)
+    tau = Ls - D
+    cuts = torch.stack([ell, tau], -1)                                     # (B, N, 2)
+    valid = torch.stack([ell > tol, curved & (tau > tol) & (tau < ell - tol)], -1)
+    close = (cuts[:, :, :, None, None] - cuts[:, None, None, :, :]).abs() <= tol
+    both = valid[:, :, :, None, None] & valid[:, None, None, :, :]
+    other = ~torch.eye(N, dtype=torch.bool, device=D.device)[None, :, None, :, None]
+    return (close & both & other).flatten(2).any(-1)
+
+
 def _one_sided_forces(tubes, res, forces, resolve, delta: float = 1e-7, tol: float = 1e-9):
     """Where ``U*(D_j)`` has a kink — material of tube ``j`` changing kind exactly at the
     orifice: its base (``D_j = 0``: the guide torsion appears), its straight-to-curved transition
@@ -437,7 +453,7 @@ def _one_sided_forces(tubes, res, forces, resolve, delta: float = 1e-7, tol: flo
     curved = tubes.coef.abs().sum((-1, -2)).expand(B, N) > 0
     exposed = L - D > tol
     kink = ((D <= tol) & exposed) | (((Ls - D).abs() <= tol) & curved & (L > Ls)) \
-        | ((L - D).abs() <= tol)
+        | ((L - D).abs() <= tol) | _coinciding_cuts(L, Ls, D, curved, tol)
     insertion = forces.clone()
     prev = torch.cat([torch.zeros_like(D[:, :1]), D[:, :-1]], -1)
     blocked = D - delta < prev
