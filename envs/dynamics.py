@@ -106,7 +106,7 @@ class RobotBatch:
     """State and stepping of ``B`` robots (numpy state, one batched torch solve per substep).
 
     State arrays (float64): ``x (B, 2N)``, ``v (B, 2N)``, ``g (B, 2N)`` [N, N·m],
-    ``tip (B, 3)`` [m] in the base frame, ``margin (B,)`` [J·m²] (smallest stiffness
+    ``tip (B, 3)`` [m] in the base frame, ``margin (B,)`` (smallest scaled stiffness
     eigenvalue), ``at_lower``/``at_upper (B, N)`` stroke-limit flags.
     """
 

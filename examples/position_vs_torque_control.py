@@ -60,7 +60,7 @@ def main() -> None:
     # them needs
     tau_all = torch.cat([fwd.actuation_torques[:, 1], bwd.actuation_torques[:, 1]])
     print(f"position control: fold (loss of shape stability) at alpha_2 = "
-          f"{math.degrees(a_pos):.2f} deg, margin before {fold.margin_before:.2e} J m^2, tip "
+          f"{math.degrees(a_pos):.2f} deg, margin before {fold.margin_before:.2e}, tip "
           f"jump {1e3 * fold.tip_jump:.1f} mm")
 
     # dense position sweep along the branch with the actuator stiffness dtau/dalpha_2
@@ -110,7 +110,7 @@ def main() -> None:
     tau_max, a_tc = tau_c[-1], a_c[-1]
     print(f"torque control: largest torque balanced stably {tau_max:.5f} N m at alpha_2 = "
           f"{math.degrees(a_tc):.2f} deg (dtau/dalpha_2 = {k_c[-1]:.2e} N m/rad, shape margin "
-          f"{m_c[-1]:.2e} J m^2); beyond it: {fail_reason}")
+          f"{m_c[-1]:.2e}); beyond it: {fail_reason}")
     print(f"  cross-check: peak of tau along the position sweep {tau_p[i]:.5f} N m; largest "
           f"torque of any stable equilibrium on both position sweeps {float(tau_all.max()):.5f} "
           f"N m")
@@ -150,7 +150,7 @@ def main() -> None:
     ax2.plot(deg, m_p, "C0-")
     ax2.axhline(0, color="0.5", lw=0.6)
     ax2.axvline(math.degrees(a_pos), color="C0", ls="--", lw=1)
-    ax2.set(xlabel="alpha_2 [deg]", ylabel="smallest shape-Hessian eigenvalue [J m^2]",
+    ax2.set(xlabel="alpha_2 [deg]", ylabel="smallest scaled shape-Hessian eigenvalue",
             title="position control: shape stability margin")
     ax3.plot(deg, k_p, "C1-", label="dtau/dalpha_2 along the branch")
     ax3.axhline(0, color="0.5", lw=0.6)

@@ -42,7 +42,7 @@ def main() -> None:
         for f in res.folds:
             print(f"{name}: fold at alpha_2 = {math.degrees(float(f.rotation[1])):.3f} deg "
                   f"({f.kind}), tip jump {1e3 * f.tip_jump:.1f} mm, margin before "
-                  f"{f.margin_before:.2e} -> after {f.margin_after:.2e} J m^2")
+                  f"{f.margin_before:.2e} -> after {f.margin_after:.2e} (dimensionless)")
 
     fig = Figure(figsize=(12, 4))
     FigureCanvasAgg(fig)
@@ -60,7 +60,7 @@ def main() -> None:
                       for i in idx], style, color=color, **kw)
         for f in res.folds:
             ax1.axvline(math.degrees(float(f.rotation[1])), color="0.6", lw=0.8, ls=style)
-    ax1.set(xlabel="alpha_2 [deg]", ylabel="stability margin [J m^2]",
+    ax1.set(xlabel="alpha_2 [deg]", ylabel="stability margin (scaled eigenvalue)",
             title="smallest stiffness eigenvalue")
     ax2.set(xlabel="alpha_2 [deg]", ylabel="theta_2(L_1) [deg]", title="relative rotation")
     ax1.legend()

@@ -146,3 +146,39 @@ def test_stability_verdict_does_not_depend_on_the_robot_scale(factor, diam, alph
     ev, ev0 = float(eq.min_stiffness_eigenvalue[0]), float(base.min_stiffness_eigenvalue[0])
     assert abs(ev - ev0) <= 1e-6 * abs(ev0) + 1e-12, (ev, ev0)
     assert bool(eq.stable[0]) == (ev > 0)
+
+
+def test_large_tip_moment_stops_within_the_work_bound_with_a_reason():
+    """A tip moment the model cannot carry (0.5 N m about z on the Fig. 3 robot; 10 N m used to
+    run for minutes): the solve ramps the load, stops at max_total_iter and says how far the
+    ramp got."""
+    opts = tp.SolverOptions(order=2, n_magnus=8, max_iter=15, max_total_iter=40, load_steps=4,
+                            on_failure="ignore")
+    eq = tp.solve(SC, tip_moment=[0.0, 0.0, 0.5], options=opts)
+    assert not bool(eq.converged[0])
+    reason = eq.reason[0]
+    assert "load ramp (4 steps) reached" in reason and "% of the tip load" in reason, reason
+    assert "max_total_iter=40" in reason, reason
+    assert int(eq.iterations[0]) <= 15 + 1
+
+
+def test_load_ramp_carries_a_load_the_single_solve_cannot():
+    """With a tight iteration budget (max_iter=4) a 20 N lateral tip force is not reached from
+    the initial guess in one Newton solve, but is by 8 warm-started load steps; the result is
+    the equilibrium of the full load: the same tip as an independent solve with ample
+    iterations (the stable equilibrium reached from the same guess)."""
+    F = [20.0, 0.0, 0.0]
+    tight = dict(order=2, n_magnus=8, max_iter=4, on_failure="ignore")
+    single = tp.solve(SC, tip_force=F, options=tp.SolverOptions(load_steps=1, **tight))
+    assert not bool(single.converged[0])
+    ramped = tp.solve(SC, tip_force=F, options=tp.SolverOptions(load_steps=8, **tight))
+    assert bool(ramped.converged[0])
+    ample = tp.solve(SC, tip_force=F, options=tp.SolverOptions(order=2, n_magnus=8))
+    assert float((ramped.tip_position - ample.tip_position).norm()) < 1e-9
+
+
+def test_options_bounds_are_validated():
+    with pytest.raises(ValueError, match="options.load_steps"):
+        tp.SolverOptions(load_steps=0)
+    with pytest.raises(ValueError, match="options.max_total_iter"):
+        tp.SolverOptions(max_total_iter=0)

@@ -157,7 +157,7 @@ class Continuation:
         tip_position: ``(K, 3)`` [m], base frame; ``tip_rotation``: ``(K, 3, 3)``.
         relative_rotation_at_outer_tip: ``(K, N-1)`` [rad].
         energy: ``(K,)`` [J].
-        stability_margin: ``(K,)`` smallest eigenvalue of the reduced stiffness [J·m²]
+        stability_margin: ``(K,)`` smallest eigenvalue of the scaled (dimensionless) stiffness
             (``Equilibrium.min_stiffness_eigenvalue``); ``stable``: ``(K,)`` bool.
         actuation_forces: ``(K, N)`` [N]; ``actuation_torques``: ``(K, N)`` [N·m] (NaN when
             ``options.compute_forces`` is False).

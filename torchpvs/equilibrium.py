@@ -21,6 +21,18 @@ from .sections import build_layout
 __all__ = ["Equilibrium", "actuation"]
 
 
+def _failure_reason(res, opts, b: int) -> str:
+    text = (f"residual {float(res['residual'][b]):.3g} > tol after {int(res['iterations'][b])} "
+            f"iterations at order {res['order']}")
+    ramp = res.get("ramp")
+    if ramp is not None and not math.isnan(float(ramp[b])):
+        text += (f"; the load ramp ({opts.load_steps} steps) reached {float(ramp[b]):.0%} of "
+                 f"the tip load")
+    if res.get("work_exhausted"):
+        text += f"; work limit max_total_iter={opts.max_total_iter} reached"
+    return text + "; try method='minimize', more max_iter, or a different initial guess"
+
+
 def _scaled_stiffness(H: torch.Tensor, qmask: torch.Tensor):
     """``S H S`` with ``S = diag(|H_ii|^-1/2)`` on active coordinates (identity rows elsewhere)
     and the active mask ``(B, nq)`` as float."""
@@ -167,11 +179,8 @@ class Equilibrium:
             forces, insert_side, kink = _one_sided_forces(tubes, res, forces, resolve)
         conv = res["converged"]
         conv_list = conv.tolist()
-        reason = tuple(
-            "converged" if conv_list[b] else
-            (f"residual {float(res['residual'][b]):.3g} > tol after {int(res['iterations'][b])} "
-             f"iterations; try method='minimize', more max_iter, or a different initial guess")
-            for b in range(B))
+        reason = tuple("converged" if conv_list[b] else _failure_reason(res, opts, b)
+                       for b in range(B))
         err = res.get("error_estimate", torch.full((B,), float("nan"), dtype=q.dtype,
                                                    device=q.device))
         ctx = {"scene": scene, "tubes": tubes, "lay": lay, "tab": tab, "disc": res["disc"],

@@ -87,6 +87,13 @@ class SolverOptions:
             load (they are exact without; needed for the tip compliance at zero load and for
             gradients w.r.t. a load that is zero).
         kernel: name of the Newton kernel in :data:`torchpvs.newton.KERNELS` (``"newton"``).
+        load_steps: load continuation for loaded elements that do not converge from the
+            initial guess: the tip load is ramped up in this many equal steps, each warm-started
+            from the last (1 = no ramp). ``Equilibrium.reason`` says how far a failed ramp got.
+        max_total_iter: bound on the Newton iterations of one call over every order, Magnus
+            refinement and load step (``max_iter`` bounds one kernel call). When it is reached
+            the solve stops where it is: unfinished elements are not converged, and converged
+            ones whose estimate exceeds ``accuracy`` say so (``accuracy_met``).
         singular_tol: the implicit backward warns (:class:`NearSingularStiffnessWarning`) for
             elements whose scaled stiffness has an eigenvalue below this in magnitude.
     """
@@ -108,6 +115,8 @@ class SolverOptions:
     singular_tol: float = 1e-10
     load_coordinates: bool = False
     kernel: str = "newton"
+    load_steps: int = 8
+    max_total_iter: int = 200
 
     def __post_init__(self) -> None:
         if not (isinstance(self.accuracy, (int, float)) and self.accuracy > 0
@@ -130,6 +139,11 @@ class SolverOptions:
             raise ValueError(f"options.tol must be > 0, got {self.tol!r}")
         if not isinstance(self.max_iter, int) or self.max_iter < 1:
             raise ValueError(f"options.max_iter must be an integer >= 1, got {self.max_iter!r}")
+        if not isinstance(self.load_steps, int) or self.load_steps < 1:
+            raise ValueError(f"options.load_steps must be an integer >= 1, got {self.load_steps!r}")
+        if not isinstance(self.max_total_iter, int) or self.max_total_iter < 1:
+            raise ValueError(f"options.max_total_iter must be an integer >= 1, "
+                             f"got {self.max_total_iter!r}")
         if self.n_quad is not None and (not isinstance(self.n_quad, int) or self.n_quad < 2):
             raise ValueError(f"options.n_quad must be an integer >= 2 or None, got {self.n_quad!r}")
         if self.n_magnus is not None and (not isinstance(self.n_magnus, int)
@@ -263,19 +277,32 @@ def _solve(scene: Scene, tubes: TubeTensors, D, A, F, M, opts: SolverOptions, in
     n_magnus = opts.n_magnus or init_magnus or MAGNUS_START
     # The accuracy is shared between the basis and the pose integration when both are automatic.
     budget = opts.accuracy / 2 if opts.n_magnus is None else opts.accuracy
+    work = _Work(opts.max_total_iter)
+    prev = None
     while True:
         res = _solve_order(scene, tubes, D, A, F, M, order, n_magnus, opts, q_init, plan)
+        work.spend(res)
+        if prev is None:
+            res = _load_ramp(scene, tubes, D, A, F, M, res, opts, plan, q_init, work)
+        elif bool((prev["converged"] & ~res["converged"]).any()):
+            # A higher order lost an equilibrium the lower one had: keep the lower order's
+            # batch (its estimate then says the accuracy is not met) rather than a failure.
+            res = prev
+            break
         if opts.order is not None:
             break
         est, q_next = _order_estimate(scene, tubes, D, A, F, M, res, opts, plan)
         res["error_estimate"] = est
         # Elements that did not converge are reported as such; a higher order will not help.
-        if bool(((est <= budget) | ~res["converged"]).all()) or order >= opts.max_order:
+        if bool(((est <= budget) | ~res["converged"]).all()) or order >= opts.max_order \
+                or work.exhausted:
             break
         order += 1
         q_init = q_next
+        prev = res
     if opts.n_magnus is None:
-        res = _refine_magnus(scene, tubes, D, A, F, M, res, opts, plan)
+        res = _refine_magnus(scene, tubes, D, A, F, M, res, opts, plan, work)
+    res["work_exhausted"] = work.exhausted
     diff = None
     info = {"H": res["H"], "qmask": res["lay"]["qmask"], "ridge": opts.backward_ridge,
             "singular_tol": opts.singular_tol, "loaded": res["loaded"], "disc": res["disc"],
@@ -391,7 +418,64 @@ def _loaded(F, M, opts: SolverOptions) -> torch.Tensor:
     return (F.abs().sum(-1) > 0) | (M.abs().sum(-1) > 0) | opts.load_coordinates
 
 
-def _refine_magnus(scene, tubes, D, A, F, M, res, opts: SolverOptions, plan: Plan):
+class _Work:
+    """Newton iterations spent by one call (the slowest element of each kernel call)."""
+
+    def __init__(self, limit: int):
+        self.limit, self.spent = limit, 0
+
+    def spend(self, res) -> None:
+        self.spent += int(res["iterations"].max()) if res["iterations"].numel() else 0
+
+    @property
+    def exhausted(self) -> bool:
+        return self.spent >= self.limit
+
+
+def _load_ramp(scene, tubes, D, A, F, M, res, opts: SolverOptions, plan: Plan, q_init,
+               work: _Work):
+    """Load continuation for the loaded elements that did not converge: the tip load is applied
+    in ``options.load_steps`` equal steps, each solve warm-started from the last, from the
+    initial guess. Rows that converge at the full load replace the failed ones; ``res["ramp"]``
+    records for each element how far its ramp got (fraction of the load; NaN: no ramp)."""
+    B = D.shape[0]
+    res["ramp"] = torch.full((B,), float("nan"), dtype=D.dtype, device=D.device)
+    loaded = (F.abs().sum(-1) > 0) | (M.abs().sum(-1) > 0)
+    rows = (~res["converged"] & loaded).nonzero().flatten()
+    n = opts.load_steps
+    if rows.numel() == 0 or n < 2 or work.exhausted:
+        return res
+    Dr, Ar, Fr, Mr = D[rows], A[rows], F[rows], M[rows]
+    q = None if q_init is None else q_init[rows]
+    reached = torch.zeros(len(rows), dtype=D.dtype, device=D.device)
+    alive = torch.ones(len(rows), dtype=torch.bool, device=D.device)
+    sub = None
+    for k in range(1, n + 1):
+        t = k / n
+        sub = _solve_order(scene, tubes, Dr, Ar, Fr * t, Mr * t, res["order"],
+                           res["disc"].n_magnus, opts, q, plan)
+        work.spend(sub)
+        alive = alive & sub["converged"]
+        reached = torch.where(alive, torch.full_like(reached, t), reached)
+        # Elements whose step failed keep their last converged state (their ramp ends there).
+        q = sub["q"] if q is None else torch.where(alive[:, None], sub["q"], q)
+        if not bool(alive.any()) or (work.exhausted and k < n):
+            break
+    res = dict(res)
+    res["ramp"] = res["ramp"].clone()
+    res["ramp"][rows] = reached
+    done = alive & (reached == 1.0)
+    if sub is not None and bool(done.any()) and sub["q"].shape[-1] == res["q"].shape[-1]:
+        keep = rows[done]
+        for key in ("q", "H", "g", "converged", "residual", "iterations", "tip", "R"):
+            merged = res[key].clone()
+            merged[keep] = sub[key][done]
+            res[key] = merged
+    return res
+
+
+def _refine_magnus(scene, tubes, D, A, F, M, res, opts: SolverOptions, plan: Plan,
+                   work: _Work | None = None):
     """Double the Magnus steps until the tip moves less than ``accuracy / 2`` (4th order: the
     remaining error of the finer count is ~1/15 of that change). The equilibrium coordinates do
     not depend on the pose integration unless a tip load is applied, so the check is a tip
@@ -402,10 +486,16 @@ def _refine_magnus(scene, tubes, D, A, F, M, res, opts: SolverOptions, plan: Pla
         fine = replace(res["disc"], n_magnus=2 * m)
         tip_fine, _, _ = tip_pose(res["q"], res["lay"], fine.tables(D.dtype, D.device))
         est = (tip_fine - res["tip"]).norm(dim=-1)
-        if bool((est <= opts.accuracy / 2).all()) or 2 * m > _MAGNUS_MAX:
+        if bool((est <= opts.accuracy / 2).all()) or 2 * m > _MAGNUS_MAX \
+                or (work is not None and work.exhausted):
             break
         m *= 2
+        ramp = res.get("ramp")
         res = _solve_order(scene, tubes, D, A, F, M, res["order"], m, opts, res["q"], plan)
+        if work is not None:
+            work.spend(res)
+        if ramp is not None:
+            res["ramp"] = ramp
     if order_err is not None:
         res["error_estimate"] = order_err + est
     res["magnus_estimate"] = est
