@@ -461,3 +461,15 @@ def test_failed_solve_reports_not_converged(monkeypatch):
     # NaN guesses never reach the integrator
     with pytest.raises(ValueError, match="initial"):
         solve_standard(sc, initial=[float("nan"), 0.0])
+
+
+def test_time_limit_stops_the_reference_with_a_reason():
+    """The reference is bounded too (a scene with G = 1e3 Pa used to run 550 s): past
+    ``time_limit`` it stops between residual evaluations with converged=False and says why."""
+    sc = load_scene("renda2021_fig3")
+    r = solve_standard(sc, time_limit=1e-9, compute_forces=False, compute_stability=False)
+    assert not r.converged and "time limit" in r.reason and r.iterations <= 2
+    ok = solve_standard(sc, compute_forces=False, compute_stability=False)
+    assert ok.converged and ok.reason == "converged"
+    with pytest.raises(ValueError, match="time_limit"):
+        solve_standard(sc, time_limit=0.0)

@@ -63,32 +63,16 @@ def _backward(ctx, grad_q):
     # of a potential; the tip-moment load stiffness is symmetrized as in the solve).
     q_star, D, alpha, F, M, EI, GJ, L, Ls, coef = ctx.saved_tensors
     info = ctx.info
-    H = info["H"]
     qmask = info["qmask"]
-    ridge = info["ridge"]
-    scale = H.diagonal(dim1=-2, dim2=-1).abs().clamp(min=1e-300)
-    Hs = H / torch.sqrt(scale[:, :, None] * scale[:, None, :])
-    ev = torch.linalg.eigvalsh(Hs)
-    near = ev.abs().amin(-1) < info["singular_tol"]
-    if bool(near.any()):
-        warnings.warn(
-            f"torchpvs: stiffness nearly singular at {int(near.sum())} element(s) "
-            f"{near.nonzero().flatten().tolist()[:8]} (a fold/snap point): implicit gradients "
-            "there are unreliable; SolverOptions(backward_ridge=...) regularizes them.",
-            NearSingularStiffnessWarning, stacklevel=2)
-    eye = torch.eye(H.shape[-1], dtype=H.dtype, device=H.device)
-    A = Hs + ridge * eye
-    if info["has_moment"]:
-        # A dead tip moment is not conservative: the exact tangent adds the antisymmetric
-        # K_ab = 1/2 M . (theta_a x theta_b) = -1/2 J_theta^T [M]x J_theta (see mechanics).
-        Jt = _rotation_jacobian(q_star, info, D, alpha, F, M, EI, GJ, L, Ls, coef)
-        from .lie import hat
-        K = -0.5 * Jt.transpose(1, 2) @ hat(M) @ Jt
-        K = K * qmask[:, :, None] * qmask[:, None, :]
-        A = A + K / torch.sqrt(scale[:, :, None] * scale[:, None, :])
-    # Adjoint of the (possibly non-symmetric) tangent: K^T lambda = v.
-    A = A.transpose(1, 2)
-    lam = torch.linalg.solve(A, (grad_q * qmask / scale.sqrt())[..., None])[..., 0]
+    # One factorization per equilibrium: every reverse pass through the same solve (e.g. the
+    # 2N rows of the actuator stiffness) reuses it, and the singularity check runs once.
+    # (info belongs to one solve: its H, q*, actuation and load never change.)
+    cached = info.get("_adjoint")
+    if cached is None:
+        cached = _adjoint_factor(q_star, info, D, alpha, F, M, EI, GJ, L, Ls, coef)
+        info["_adjoint"] = cached
+    lu, pivots, scale = cached
+    lam = torch.linalg.lu_solve(lu, pivots, (grad_q * qmask / scale.sqrt())[..., None])[..., 0]
     lam = lam / scale.sqrt() * qmask
     needs = ctx.needs_input_grad[2:]
     inputs = [t.detach().requires_grad_(bool(nd)) for t, nd in
@@ -113,6 +97,36 @@ def _backward(ctx, grad_q):
         else:
             out.append(None)
     return (None, None, *out)
+
+
+def _adjoint_factor(q_star, info, D, alpha, F, M, EI, GJ, L, Ls, coef):
+    """LU factors of the transposed, Jacobi-scaled tangent ``K^T`` of the adjoint system and the
+    scale; warns once if the stiffness is nearly singular."""
+    H = info["H"]
+    qmask = info["qmask"]
+    scale = H.diagonal(dim1=-2, dim2=-1).abs().clamp(min=1e-300)
+    Hs = H / torch.sqrt(scale[:, :, None] * scale[:, None, :])
+    ev = torch.linalg.eigvalsh(Hs)
+    near = ev.abs().amin(-1) < info["singular_tol"]
+    if bool(near.any()):
+        warnings.warn(
+            f"torchpvs: stiffness nearly singular at {int(near.sum())} element(s) "
+            f"{near.nonzero().flatten().tolist()[:8]} (a fold/snap point): implicit gradients "
+            "there are unreliable; SolverOptions(backward_ridge=...) regularizes them.",
+            NearSingularStiffnessWarning, stacklevel=4)
+    eye = torch.eye(H.shape[-1], dtype=H.dtype, device=H.device)
+    A = Hs + info["ridge"] * eye
+    if info["has_moment"]:
+        # A dead tip moment is not conservative: the exact tangent adds the antisymmetric
+        # K_ab = 1/2 M . (theta_a x theta_b) = -1/2 J_theta^T [M]x J_theta (see mechanics).
+        Jt = _rotation_jacobian(q_star, info, D, alpha, F, M, EI, GJ, L, Ls, coef)
+        from .lie import hat
+        K = -0.5 * Jt.transpose(1, 2) @ hat(M) @ Jt
+        K = K * qmask[:, :, None] * qmask[:, None, :]
+        A = A + K / torch.sqrt(scale[:, :, None] * scale[:, None, :])
+    # Adjoint of the (possibly non-symmetric) tangent: K^T lambda = v.
+    lu, pivots = torch.linalg.lu_factor(A.transpose(1, 2))
+    return lu, pivots, scale
 
 
 def _rotation_jacobian(q_star, info, D, alpha, F, M, EI, GJ, L, Ls, coef) -> torch.Tensor:

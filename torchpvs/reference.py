@@ -348,6 +348,7 @@ class StandardSolution:
         y0: (dofs,) shooting unknowns in N m (``m_j(0)`` of the exposed tubes, then ``mb_xy(0)``
             when loaded); usable as ``initial``.
         scene: the scene solved.
+        reason: ``"converged"`` or why not (residual, evaluations, time limit).
     """
 
     converged: bool
@@ -369,6 +370,7 @@ class StandardSolution:
     _mb0: np.ndarray = field(repr=False)
     _pieces: list = field(repr=False, default_factory=list)
     _psi_end: np.ndarray = field(repr=False, default=None)
+    reason: str = "converged"
 
     # ------------------------------------------------------------------------------------------
     def state_at(self, s: np.ndarray) -> np.ndarray:
@@ -471,15 +473,24 @@ def _conv_tol(tol: float) -> float:
     return min(max(1e2 * tol, 1e-10), 1e-6)
 
 
-def _shoot(prob: _Problem, x0: np.ndarray, tol: float) -> dict[str, Any]:
-    """Solve the boundary value problem from scaled unknowns ``x0``."""
+class _OutOfTime(Exception):
+    """The solve's time limit passed (raised between residual evaluations)."""
+
+
+def _shoot(prob: _Problem, x0: np.ndarray, tol: float,
+           deadline: float | None = None) -> dict[str, Any]:
+    """Solve the boundary value problem from scaled unknowns ``x0`` (stopping at the first
+    residual evaluation after ``deadline``, a ``time.perf_counter()`` value)."""
     conv_tol = _conv_tol(tol)
     xtol = min(tol, 1e-10)
     nfev = 0
     big = 1e6
+    out_of_time = False
 
     def fun(x: np.ndarray) -> np.ndarray:
         nonlocal nfev
+        if deadline is not None and nfev > 0 and time.perf_counter() > deadline:
+            raise _OutOfTime
         nfev += 1
         m0, mb = prob.unpack(x)
         yend, _, ok = prob.integrate(m0, mb, tol)
@@ -489,7 +500,7 @@ def _shoot(prob: _Problem, x0: np.ndarray, tol: float) -> dict[str, Any]:
         return r
 
     if prob.dofs == 0:
-        return dict(x=np.zeros(0), res=np.zeros(0), nfev=0, ok=True)
+        return dict(x=np.zeros(0), res=np.zeros(0), nfev=0, ok=True, out_of_time=False)
     best_x, best_r = x0, fun(x0)
     if np.linalg.norm(best_r) > conv_tol:
         for method, opts in (("hybr", {"xtol": xtol, "eps": tol, "maxfev": 200 * (prob.dofs + 1)}),
@@ -499,17 +510,22 @@ def _shoot(prob: _Problem, x0: np.ndarray, tol: float) -> dict[str, Any]:
                 sol = root(fun, best_x, method=method, options=opts)
                 x = np.asarray(sol.x, float)
                 r = fun(x)
+            except _OutOfTime:
+                out_of_time = True
+                break
             except (ValueError, FloatingPointError, np.linalg.LinAlgError):
                 continue
             if np.all(np.isfinite(x)) and np.linalg.norm(r) < np.linalg.norm(best_r):
                 best_x, best_r = x, r
             if np.linalg.norm(best_r) <= conv_tol:
                 break
-    return dict(x=best_x, res=best_r, nfev=nfev, ok=bool(np.linalg.norm(best_r) <= conv_tol))
+    return dict(x=best_x, res=best_r, nfev=nfev, ok=bool(np.linalg.norm(best_r) <= conv_tol),
+                out_of_time=out_of_time)
 
 
-def _equilibrium(prob: _Problem, x0: np.ndarray, tol: float, dense: bool) -> dict[str, Any]:
-    out = _shoot(prob, x0, tol)
+def _equilibrium(prob: _Problem, x0: np.ndarray, tol: float, dense: bool,
+                 deadline: float | None = None) -> dict[str, Any]:
+    out = _shoot(prob, x0, tol, deadline)
     m0, mb = prob.unpack(out["x"])
     yend, pieces, ok = prob.integrate(m0, mb, tol, dense=dense)
     if dense and not pieces:  # nothing exposed: a constant "solution" at s = 0
@@ -632,8 +648,8 @@ def _stability(prob: _Problem, sol_state, nodes_target: int = 1500) -> float:
 
 
 def solve_standard(scene: Scene | Any, *, tol: float = 1e-10, initial: Any = None,
-                   compute_forces: bool = True, compute_stability: bool = True
-                   ) -> StandardSolution:
+                   compute_forces: bool = True, compute_stability: bool = True,
+                   time_limit: float | None = 120.0) -> StandardSolution:
     """Equilibrium of the standard (Kirchhoff) CTR model by shooting.
 
     Args:
@@ -647,16 +663,24 @@ def solve_standard(scene: Scene | Any, *, tol: float = 1e-10, initial: Any = Non
         compute_forces: compute ``actuation_forces`` by finite differences (2 N extra solves);
             otherwise ``actuation_forces`` is ``None``.
         compute_stability: compute ``stable``/``min_stiffness_eigenvalue`` (unloaded scenes).
+        time_limit: [s] bound on the equilibrium solve (checked between residual evaluations;
+            ``None``: no bound). Past it the solve stops with ``converged=False`` and says so in
+            ``reason`` (stiff scenes, e.g. G = 1e3 Pa, can take many minutes).
 
-    Never raises on a failed solve: returns ``converged=False`` with the residual.
+    Never raises on a failed solve: returns ``converged=False`` with the residual and a
+    ``reason``.
     """
     scene = load_scene(scene) if not isinstance(scene, Scene) else scene
     tol = _check_tol(tol)
     prob = _Problem(scene, scene.actuation.insertion, scene.actuation.rotation)
     x0 = _initial_guess(prob, initial)
 
+    if time_limit is not None and not (time_limit > 0):
+        raise ValueError(f"time_limit must be a positive number of seconds or None, "
+                         f"got {time_limit!r}")
     t0 = time.perf_counter()
-    res = _equilibrium(prob, x0, tol, dense=True)
+    res = _equilibrium(prob, x0, tol, dense=True,
+                       deadline=None if time_limit is None else t0 + time_limit)
     solve_time = time.perf_counter() - t0
 
     N = prob.N
@@ -685,6 +709,13 @@ def solve_standard(scene: Scene | Any, *, tol: float = 1e-10, initial: Any = Non
         rel = np.zeros(0)
 
     converged = bool(res["ok"])
+    if converged:
+        reason = "converged"
+    else:
+        reason = (f"scaled residual {float(np.linalg.norm(res['res'])):.3g} > "
+                  f"{_conv_tol(tol):.3g} after {int(res['nfev'])} evaluations")
+        if res.get("out_of_time"):
+            reason += f"; time limit {time_limit:g} s reached"
     forces = None
     if compute_forces and converged:
         forces = _actuation_forces(scene, prob, (m0, res["mb"]), tol, res["energy"])
@@ -716,4 +747,5 @@ def solve_standard(scene: Scene | Any, *, tol: float = 1e-10, initial: Any = Non
         _mb0=np.asarray(res["mb"], float).copy(),
         _pieces=pieces,
         _psi_end=psi_end.copy(),
+        reason=reason,
     )
