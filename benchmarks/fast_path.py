@@ -1,0 +1,240 @@
+"""Fast-path figures: PVS speed as ratios to the standard-model reference, measured in one run.
+
+    python benchmarks/fast_path.py [--robots fig3 three_tube] [--configs 32] [--repeat 3]
+                                   [--batches 1 64 1024] [--env] [--json out.json]
+
+Workload (per robot): ``--configs`` configurations with the last tube's rotation spread over
+[0, 250] deg (the rest as in the robot's scene), each solved WARM from the equilibrium 1 deg
+away (a control step) or COLD (default initial guess); one torch thread. Reference:
+``torchpvs.reference.solve_standard(tol=1e-6, compute_forces=False, compute_stability=False)``
+warm from the neighbouring reference solution. PVS: default options (accuracy 1e-5 m, forces,
+stability: what a user gets) and a fixed ``order=2, n_magnus=8`` solve, single calls (B = 1)
+and one batched call per B (the configurations repeated). Printed: ms/solve, the ratio to the
+reference, the cost of default options relative to order 2, torch ops and host syncs per call,
+and (``--env``) the force environment's robot-steps/s at B = 64 against the reference's
+solves/s. Timings are the best of ``--repeat`` runs. Run it on an idle machine.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import time
+import warnings
+
+import torch
+from torch.utils._python_dispatch import TorchDispatchMode
+
+import torchpvs
+from torchpvs.reference import solve_standard
+
+TARGETS = {"single_default": 10.0, "batch1024_warm_default": 200.0,
+           "batch1024_cold_default": 100.0, "default_over_order2": 1.5, "env_over_ref": 20.0}
+
+
+class _OpCounter(TorchDispatchMode):
+    """Counts aten ops and host synchronisations (``item``/``bool``/``nonzero``)."""
+
+    def __init__(self):
+        super().__init__()
+        self.ops = 0
+        self.syncs = 0
+
+    def __torch_dispatch__(self, func, types, args=(), kwargs=None):
+        self.ops += 1
+        name = func.__name__
+        if "_local_scalar_dense" in name or name.startswith("nonzero") or "is_nonzero" in name:
+            self.syncs += 1
+        return func(*args, **(kwargs or {}))
+
+
+def _best(fn, repeat: int) -> float:
+    fn()
+    best = math.inf
+    for _ in range(repeat):
+        t0 = time.perf_counter()
+        fn()
+        best = min(best, time.perf_counter() - t0)
+    return best
+
+
+def _scene(name: str):
+    if name == "fig3":
+        return torchpvs.load_scene("renda2021_fig3")
+    from envs.robots import rvim_three_tube
+    return rvim_three_tube().scene
+
+
+def bench_robot(name: str, configs: int, batches, repeat: int) -> dict:
+    scene = _scene(name)
+    N = scene.n_tubes
+    step = math.radians(1.0)
+    base = torch.tensor(scene.actuation.rotation, dtype=torch.float64)
+    alphas = torch.linspace(0, math.radians(250), configs, dtype=torch.float64)
+    rot0 = base.repeat(configs, 1)
+    rot0[:, -1] = alphas - step
+    rot1 = rot0.clone()
+    rot1[:, -1] += step
+    out = {"robot": name, "tubes": N}
+
+    # Reference: follow the branch from the first configuration, warm.
+    kw = dict(tol=1e-6, compute_forces=False, compute_stability=False)
+    prev, ref0 = None, []
+    for r in rot0:
+        prev = solve_standard(scene.with_actuation(rotation=r.tolist()), initial=prev, **kw)
+        ref0.append(prev)
+    scenes1 = [scene.with_actuation(rotation=r.tolist()) for r in rot1]
+
+    def ref_run():
+        for s, p in zip(scenes1, ref0):
+            solve_standard(s, initial=p, **kw)
+
+    t_ref = _best(ref_run, repeat) / configs
+    out["reference_ms"] = 1e3 * t_ref
+
+    opts = {"default": torchpvs.SolverOptions(),
+            "order2": torchpvs.SolverOptions(order=2, n_magnus=8)}
+    for label, o in opts.items():
+        prev, eq0 = None, []
+        for r in rot0:
+            prev = torchpvs.solve(scene, rotation=r[None], initial=prev, options=o)
+            eq0.append(prev)
+
+        def single():
+            for r, e in zip(rot1, eq0):
+                torchpvs.solve(scene, rotation=r[None], initial=e, options=o)
+
+        t1 = _best(single, repeat) / configs
+        out[f"single_{label}_ms"] = 1e3 * t1
+        out[f"single_{label}_ratio"] = t_ref / t1
+        for B in batches:
+            reps = max(1, B // configs)
+            R0, R1 = rot0.repeat(reps, 1)[:B], rot1.repeat(reps, 1)[:B]
+            E0 = torchpvs.solve(scene, rotation=R0, options=o,
+                                initial=torch.cat([e.q for e in eq0]).repeat(reps, 1)[:B]
+                                if len({e.q.shape[-1] for e in eq0}) == 1 else None)
+            Bn = R1.shape[0]
+            tw = _best(lambda: torchpvs.solve(scene, rotation=R1, initial=E0, options=o),
+                       repeat) / Bn
+            tc = _best(lambda: torchpvs.solve(scene, rotation=R1, options=o), repeat) / Bn
+            out[f"b{B}_warm_{label}_ms"] = 1e3 * tw
+            out[f"b{B}_cold_{label}_ms"] = 1e3 * tc
+            out[f"b{B}_warm_{label}_ratio"] = t_ref / tw
+            out[f"b{B}_cold_{label}_ratio"] = t_ref / tc
+            with _OpCounter() as c:
+                torchpvs.solve(scene, rotation=R1, initial=E0, options=o)
+            out[f"b{B}_warm_{label}_ops"] = c.ops
+            out[f"b{B}_warm_{label}_syncs"] = c.syncs
+    return out
+
+
+def bench_env(t_ref_ms: float, repeat: int, steps: int = 20) -> dict:
+    import numpy as np
+
+    from envs.vec_env import CTRReachVecEnv
+    env = CTRReachVecEnv(64)
+    env.seed(0)
+    env.reset()
+    rng = np.random.default_rng(0)
+    acts = [rng.uniform(-1, 1, size=(64,) + env.action_space.shape).astype(np.float32)
+            for _ in range(steps)]
+
+    def run():
+        for a in acts:
+            env.step(a)
+
+    t = _best(run, repeat) / (steps * 64)
+    env.close()
+    return {"env_steps_per_s": 1.0 / t, "env_over_ref": (1.0 / t) / (1e3 / t_ref_ms)}
+
+
+def main(argv=None) -> dict:
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("--robots", nargs="+", default=["fig3", "three_tube"])
+    ap.add_argument("--configs", type=int, default=32)
+    ap.add_argument("--batches", type=int, nargs="+", default=[1, 64, 1024])
+    ap.add_argument("--repeat", type=int, default=3)
+    ap.add_argument("--env", action="store_true", help="also the force env's robot-steps/s")
+    ap.add_argument("--json", help="write the figures to this JSON file")
+    ap.add_argument("--markdown", metavar="JSON",
+                    help="print the markdown tables of a saved run (no measurement)")
+    args = ap.parse_args(argv)
+    if args.markdown:
+        with open(args.markdown) as f:
+            print(markdown(json.load(f)))
+        return {}
+    torch.set_num_threads(1)
+    warnings.filterwarnings("ignore")
+    results = []
+    for name in args.robots:
+        r = bench_robot(name, args.configs, args.batches, args.repeat)
+        if args.env and name == "fig3":
+            r.update(bench_env(r["reference_ms"], args.repeat))
+        results.append(r)
+        _print(r, args.batches)
+    if args.json:
+        with open(args.json, "w") as f:
+            json.dump(results, f, indent=1)
+    return {"results": results}
+
+
+def _print(r: dict, batches) -> None:
+    ref = r["reference_ms"]
+    print(f"\n== {r['robot']} ({r['tubes']} tubes): reference warm {ref:.2f} ms/solve "
+          f"({1e3 / ref:.0f} solves/s)")
+    print(f"{'case':<26}{'default ms':>12}{'x ref':>9}{'order2 ms':>12}{'x ref':>9}"
+          f"{'dflt/o2':>9}{'ops/call':>10}{'syncs':>7}")
+    rows = [("single B=1 warm", "single_{}")] + [
+        (f"batch B={B} {m}", f"b{B}_{m}_{{}}") for B in batches for m in ("warm", "cold")]
+    for label, key in rows:
+        d, o = r[key.format("default") + "_ms"], r[key.format("order2") + "_ms"]
+        ops = r.get(key.format("default") + "_ops", "")
+        syncs = r.get(key.format("default") + "_syncs", "")
+        print(f"{label:<26}{d:>12.4f}{ref / d:>9.1f}{o:>12.4f}{ref / o:>9.1f}{d / o:>9.2f}"
+              f"{ops!s:>10}{syncs!s:>7}")
+    big = max(batches)
+    print(f"targets: single default {r['single_default_ratio']:.1f}x (>= 10x); "
+          f"B={big} warm default {r[f'b{big}_warm_default_ratio']:.0f}x (>= 200x); "
+          f"B={big} cold default {r[f'b{big}_cold_default_ratio']:.0f}x (>= 100x); "
+          f"default/order-2 at B={big} warm "
+          f"{r[f'b{big}_warm_default_ms'] / r[f'b{big}_warm_order2_ms']:.2f} (<= 1.5)")
+    if "env_steps_per_s" in r:
+        print(f"force env B=64: {r['env_steps_per_s']:.0f} robot-steps/s = "
+              f"{r['env_over_ref']:.1f}x the reference's warm solves/s (>= 20x)")
+
+
+def markdown(results: list[dict]) -> str:
+    """The tables of docs/performance.md from saved results."""
+    out = ["| robot | case | default ms/solve | x reference | order 2 ms/solve | x reference "
+           "| default / order 2 | torch ops per call |", "|---|---|---|---|---|---|---|---|"]
+    targets = ["| robot | target | measured |", "|---|---|---|"]
+    for r in results:
+        batches = sorted({int(k[1:].split("_")[0]) for k in r if k[0] == "b" and k[1].isdigit()})
+        ref = r["reference_ms"]
+        name = f"{r['robot']} ({r['tubes']} tubes; reference {ref:.1f} ms warm)"
+        rows = [("single call, warm", "single_{}")] + [
+            (f"B = {B}, {m}", f"b{B}_{m}_{{}}") for B in batches for m in ("warm", "cold")]
+        for label, key in rows:
+            d, o = r[key.format("default") + "_ms"], r[key.format("order2") + "_ms"]
+            ops = r.get(key.format("default") + "_ops", "")
+            out.append(f"| {name} | {label} | {d:.3f} | {ref / d:.1f}x | {o:.3f} | "
+                       f"{ref / o:.1f}x | {d / o:.2f} | {ops} |")
+            name = ""
+        big = max(batches)
+        tr = [("single warm solve, default: >= 10x", f"{r['single_default_ratio']:.1f}x"),
+              (f"B = {big} warm, default: >= 200x per solve",
+               f"{r[f'b{big}_warm_default_ratio']:.0f}x"),
+              (f"B = {big} cold, default: >= 100x", f"{r[f'b{big}_cold_default_ratio']:.0f}x"),
+              (f"default <= 1.5x order 2 (B = {big} warm)",
+               f"{r[f'b{big}_warm_default_ms'] / r[f'b{big}_warm_order2_ms']:.2f}x")]
+        if "env_steps_per_s" in r:
+            tr.append(("force env B = 64: >= 20x the reference's warm solves/s",
+                       f"{r['env_steps_per_s']:.0f} robot-steps/s = {r['env_over_ref']:.1f}x"))
+        for i, (t, m) in enumerate(tr):
+            targets.append(f"| {r['robot'] if i == 0 else ''} | {t} | {m} |")
+    return "\n".join(out) + "\n\n" + "\n".join(targets)
+
+
+if __name__ == "__main__":
+    main()
