@@ -7,8 +7,12 @@ Importing this package registers:
 * ``torchpvs/CTRReachJoint-v0`` — the same robot with joint-increment actions (at most 1 mm and
   5 deg per step), the convention of the CTR reinforcement-learning literature;
 
-both goal-conditioned (Dict observations, ``compute_reward`` for HER), 100 steps per episode.
-``envs.CTRReachVecEnv`` is the natively batched SB3 ``VecEnv``.
+both goal-conditioned (Dict observations, ``compute_reward`` for HER), 100 steps per episode,
+each with a natively batched ``gymnasium.vector.VectorEnv`` as its ``vector_entry_point``
+(``gym.make_vec(id, num_envs=B, vectorization_mode="vector_entry_point")``,
+:class:`envs.CTRReachVectorEnv`). ``envs.CTRReachVecEnv`` is the same batch as a
+Stable-Baselines3 ``VecEnv``; it is imported on first use, so ``import envs`` needs only
+Gymnasium (and torchpvs).
 """
 
 from gymnasium.envs.registration import register, registry
@@ -17,9 +21,9 @@ from .dynamics import CarriageModel, RobotBatch
 from .reach_env import CTRReachEnv
 from .robots import ROBOTS, Robot, fig3_two_tube, make_robot, rvim_three_tube
 from .task import ReachConfig
-from .vec_env import CTRReachVecEnv
+from .vector import CTRReachVectorEnv
 
-__all__ = ["CTRReachEnv", "CTRReachVecEnv", "CarriageModel", "ReachConfig", "Robot",
+__all__ = ["CTRReachEnv", "CTRReachVecEnv", "CTRReachVectorEnv", "CarriageModel", "ReachConfig", "Robot",
            "RobotBatch", "ROBOTS", "make_robot", "fig3_two_tube", "rvim_three_tube",
            "ENV_IDS"]
 
@@ -29,4 +33,13 @@ ENV_IDS = {"torchpvs/CTRReachForce-v0": "force", "torchpvs/CTRReachJoint-v0": "j
 for _id, _control in ENV_IDS.items():
     if _id not in registry:
         register(id=_id, entry_point="envs.reach_env:CTRReachEnv",
+                 vector_entry_point="envs.vector:CTRReachVectorEnv",
                  max_episode_steps=MAX_EPISODE_STEPS, kwargs={"control": _control})
+
+
+def __getattr__(name: str):
+    # The SB3 adapter imports stable-baselines3: only when asked for.
+    if name == "CTRReachVecEnv":
+        from .vec_env import CTRReachVecEnv
+        return CTRReachVecEnv
+    raise AttributeError(f"module 'envs' has no attribute {name!r}")
