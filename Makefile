@@ -19,13 +19,14 @@ demo: $(STAMP)
 	MPLBACKEND=Agg $(BIN)/python -m training.demo
 
 test: $(STAMP)
+	$(BIN)/ruff check torchpvs envs training tests benchmarks examples
 	MPLBACKEND=Agg $(BIN)/python -m pytest -q -m "not slow" -p no:cacheprovider
 
 test-slow: $(STAMP)
 	MPLBACKEND=Agg $(BIN)/python -m pytest -q -m slow -p no:cacheprovider
 
 lint: $(STAMP)
-	$(BIN)/ruff check torchpvs envs training tests
+	$(BIN)/ruff check torchpvs envs training tests benchmarks examples
 
 clean:
 	rm -rf $(VENV) build *.egg-info

@@ -87,7 +87,7 @@ def bench_robot(name: str, configs: int, batches, repeat: int) -> dict:
     scenes1 = [scene.with_actuation(rotation=r.tolist()) for r in rot1]
 
     def ref_run():
-        for s, p in zip(scenes1, ref0):
+        for s, p in zip(scenes1, ref0, strict=True):
             solve_standard(s, initial=p, **kw)
 
     t_ref = _best(ref_run, repeat) / configs
@@ -102,7 +102,7 @@ def bench_robot(name: str, configs: int, batches, repeat: int) -> dict:
             eq0.append(prev)
 
         def single():
-            for r, e in zip(rot1, eq0):
+            for r, e in zip(rot1, eq0, strict=True):
                 torchpvs.solve(scene, rotation=r[None], initial=e, options=o)
 
         t1 = _best(single, repeat) / configs

@@ -23,7 +23,8 @@ from .robots import ROBOTS, Robot, fig3_two_tube, make_robot, rvim_three_tube
 from .task import ReachConfig
 from .vector import CTRReachVectorEnv
 
-__all__ = ["CTRReachEnv", "CTRReachVecEnv", "CTRReachVectorEnv", "CarriageModel", "ReachConfig", "Robot",
+__all__ = ["CTRReachEnv", "CTRReachVecEnv", "CTRReachVectorEnv", "CarriageModel", "ReachConfig",
+           "Robot",
            "RobotBatch", "ROBOTS", "make_robot", "fig3_two_tube", "rvim_three_tube",
            "ENV_IDS"]
 

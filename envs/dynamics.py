@@ -2,7 +2,8 @@
 
 With actuator coordinates ``x = (D, alpha)`` (``(B, 2N)``: [m], [rad]) and the elastic
 generalized force ``g(x) = dU*/dx`` from the equilibrium solver (``actuation_forces``,
-``actuation_torques``, docs/conventions.md signs), a commanded force/torque ``tau`` moves the carriages:
+``actuation_torques``, docs/conventions.md signs), a commanded force/torque ``tau`` moves the
+carriages:
 
 * ``"overdamped"`` (default): ``b * xdot = tau - g(x)``;
 * ``"second_order"``: ``m * xddot + b * xdot = tau - g(x)``.

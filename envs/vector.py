@@ -107,8 +107,8 @@ class CTRReachVectorEnv(gym.vector.VectorEnv):
 
     def compute_reward(self, achieved_goal, desired_goal, info):
         """HER-style reward of the task (vectorized over leading dims)."""
-        from .task import compute_reward
         from .reach_env import _info_field
+        from .task import compute_reward
         snapped = _info_field(info, "snap_terminated", np.shape(achieved_goal)[:-1])
         return compute_reward(achieved_goal, desired_goal, self.task.tolerance,
                               self.config.reward, self.config.dense_scale, snapped,

@@ -206,7 +206,8 @@ def test_fig3_sweep_follows_branch(case):
 @pytest.mark.parametrize("case", ["full", "partial"])
 def test_fig3_cold_batch_lands_on_a_stable_reference_equilibrium(case):
     """Fig. 3 sweep solved in ONE cold-started batch: without the sweep history PVS may land on
-    the other stable branch (docs/physics.md: the robot is multi-stable). Every batch element must be a
+    the other stable branch (docs/physics.md: the robot is multi-stable). Every batch element must
+    be a
     converged, stable equilibrium that matches (0.1 mm) a stable reference equilibrium: the
     forward branch (rotating from 0) or the backward one (rotating from 360 deg down)."""
     D2, alphas = SWEEPS[case]

@@ -25,7 +25,8 @@ def two_tubes(L=(0.1, 0.1), k1=9.9, k2=13.8, alpha2=0.0, D=(0.0, 0.0), straight=
 
 def arc(u_xy: np.ndarray, L: float) -> tuple[np.ndarray, np.ndarray]:
     """Closed-form tip of a constant-curvature backbone ``R' = R hat([ux, uy, 0])`` from the
-    origin along +z: the tangent turns toward ``d = (uy, -ux, 0)/|u|`` (docs/conventions.md: u*_y > 0
+    origin along +z: the tangent turns toward ``d = (uy, -ux, 0)/|u|`` (docs/conventions.md: u*_y >
+    0
     bends toward +x). Returns (tip position, tip rotation of the backbone frame)."""
     ux, uy = u_xy
     kappa = math.hypot(ux, uy)

@@ -46,7 +46,8 @@ def test_torsionless_closed_form_eq31(alpha2):
 
 def test_configurational_force_single_tube():
     """A precurved tube sliding out of a straight frictionless guide feels 1/2 EI kappa^2
-    (Bigoni et al. 2015; docs/physics.md): retracting stores 1/2 EI kappa^2 per metre in the guide."""
+    (Bigoni et al. 2015; docs/physics.md): retracting stores 1/2 EI kappa^2 per metre in the
+    guide."""
     kappa = 20.0
     t = Tube(E, G, 0.0, 1.6e-3, 0.0, 0.2, ((), (kappa,), ()), "rod")
     sc = Scene((t,), Actuation((0.05,), (0.3,)))
@@ -78,7 +79,8 @@ def test_sum_of_torques_vanishes():
 
 
 def test_forces_match_finite_differences_of_equilibrium_energy():
-    """tau = dU*/d(D, alpha) (docs/conventions.md): central differences of the equilibrium energy."""
+    """tau = dU*/d(D, alpha) (docs/conventions.md): central differences of the equilibrium
+    energy."""
     sc = two_tubes(lengths=(0.15, 0.22), straight=(0.05, 0.1), D=(0.03, 0.06), alpha2=1.0)
     opts = tp.SolverOptions(order=5)
     eq = tp.solve(sc, options=opts)

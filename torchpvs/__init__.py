@@ -9,13 +9,14 @@ from .equilibrium import Equilibrium
 from .force_control import ForceControlled, solve_force_controlled
 from .implicit import NearSingularStiffnessWarning
 from .layer import CTR
-from .scene import Actuation, Load, Scene, SceneError, Tube, builtin_scenes, load_scene
 from .plan import Plan
+from .scene import Actuation, Load, Scene, SceneError, Tube, builtin_scenes, load_scene
 from .solver import AccuracyWarning, SolverError, SolverOptions, solve
 
 __all__ = [
     "Tube", "Actuation", "Load", "Scene", "SceneError", "load_scene", "builtin_scenes",
-    "SolverOptions", "SolverError", "AccuracyWarning", "Plan", "solve", "Equilibrium", "CTR", "NearSingularStiffnessWarning",
+    "SolverOptions", "SolverError", "AccuracyWarning", "Plan", "solve", "Equilibrium", "CTR",
+    "NearSingularStiffnessWarning",
     "continuation", "ActuationPath", "Continuation", "FoldEvent",
     "solve_force_controlled", "ForceControlled",
 ]

@@ -3,7 +3,7 @@
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from typing import Any
 
 import torch
@@ -255,7 +255,8 @@ class Equilibrium:
 
     # ------------------------------------------------------------------------------------------
     def as_contract(self, index: int = 0, backbone_points: int | None = None) -> dict[str, Any]:
-        """The ``torchpvs solve --json`` object of docs/conventions.md for batch element ``index``."""
+        """The ``torchpvs solve --json`` object of docs/conventions.md for batch element
+        ``index``."""
         b = index
 
         def flt(x) -> float | None:

@@ -1,7 +1,8 @@
 """Force-controlled equilibria: ``solve_force_controlled(scene, forces=..., torques=...)``.
 
 Some actuator coordinates are commanded by a generalized force — an insertion force ``tau_Dj``
-[N] or a rotation torque ``tau_alphaj`` [N·m], docs/conventions.md signs: ``tau = dU*/dx``, the force
+[N] or a rotation torque ``tau_alphaj`` [N·m], docs/conventions.md signs: ``tau = dU*/dx``, the
+force
 the actuator applies along increasing ``x`` to hold the robot — and the others by a position
 (``D_j`` [m], ``alpha_j`` [rad]). The solver finds the free actuator coordinates ``x_f`` with
 ``tau_f(x) = commanded`` by a Levenberg-Marquardt-damped Newton iteration on ``x_f``:

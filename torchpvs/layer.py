@@ -13,8 +13,8 @@ import torch
 from torch import nn
 
 from .equilibrium import Equilibrium
-from .scene import Scene, load_scene
 from .plan import Plan
+from .scene import Scene, load_scene
 from .sections import TubeTensors
 from .solver import SolverOptions, _as_batch, _check_actuation, _solve
 

@@ -1,6 +1,7 @@
 """Stage 4 — strains, energy and the total potential of the discrete PVS model.
 
-The equilibrium is a stationary point of the total potential (docs/physics.md): the paper's projected
+The equilibrium is a stationary point of the total potential (docs/physics.md): the paper's
+projected
 equations (26)/(33)/(35), generalized to N tubes, are its gradient. With the backbone bending
 ``u`` in a twist-free frame and tube angles ``psi_j`` about the tangent, tube ``j`` has bending
 ``Rz(psi_j)^T u`` and torsion ``psi_j'``, so

@@ -18,13 +18,15 @@ The default kernel, ``"newton"``, is lean where a batch spends its time:
 
 from __future__ import annotations
 
-from typing import Callable, NamedTuple
+from collections.abc import Callable
+from typing import NamedTuple
 
 import torch
 
 from .mechanics import _skew_vee, elastic_energy_maps, elastic_grad_hess, tip_pose
 
-__all__ = ["KERNELS", "NewtonResult", "Problem", "derivatives", "merit", "newton", "subset"]
+__all__ = ["KERNELS", "NewtonResult", "Problem", "chunked", "derivatives", "merit", "newton",
+           "subset"]
 
 
 class NewtonResult(NamedTuple):
@@ -129,19 +131,25 @@ def newton(q: torch.Tensor, prob: Problem, L_char: torch.Tensor, *, method: str,
     minimum whenever the iteration can reach one); ``"root"``: plain Newton on the gradient
     (capped steps), converging to the nearest stationary point, stable or not.
 
-    Elements are independent: a batch whose Hessians exceed ``CHUNK_BYTES`` is solved in chunks
-    that stay in cache (the dense (nq x nq) passes are memory-bound at large B).
+    A batch whose Hessians exceed ``CHUNK_BYTES`` is solved in cache-sized chunks (:func:`chunked`).
     """
+    return NewtonResult(*chunked(_newton, q, prob, L_char, method=method, tol=tol,
+                                 max_iter=max_iter))
+
+
+def chunked(fn, q: torch.Tensor, prob: Problem, *batched: torch.Tensor, **kwargs) -> tuple:
+    """``fn(q, prob, *batched, **kwargs)`` (a tuple of ``(B, ...)`` tensors) over cache-sized
+    chunks of the batch (``CHUNK_BYTES`` of ``nq x nq`` Hessians each), concatenated. Elements
+    are independent, and the dense per-element passes are memory-bound at large B."""
     B, nq = q.shape
     chunk = max(16, CHUNK_BYTES // (nq * nq * q.element_size()))
     if B <= 1.5 * chunk:
-        return _newton(q, prob, L_char, method=method, tol=tol, max_iter=max_iter)
+        return tuple(fn(q, prob, *batched, **kwargs))
     parts = []
     for start in range(0, B, chunk):
         rows = torch.arange(start, min(B, start + chunk), device=q.device)
-        parts.append(_newton(q[rows], subset(prob, rows), L_char[rows], method=method, tol=tol,
-                             max_iter=max_iter))
-    return NewtonResult(*(torch.cat(field) for field in zip(*parts)))
+        parts.append(fn(q[rows], subset(prob, rows), *(t[rows] for t in batched), **kwargs))
+    return tuple(torch.cat(field) for field in zip(*parts, strict=True))
 
 
 def _newton(q: torch.Tensor, prob: Problem, L_char: torch.Tensor, *, method: str, tol: float,

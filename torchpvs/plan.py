@@ -5,7 +5,8 @@ and the layout and ``q``-independent maps of the last insertion state per discre
 batch shape, so that a call that only changes rotations or loads (a control step at fixed
 insertion, a rotation sweep, the re-solves of one call) rebuilds nothing but the angles. It
 holds no choice that changes results: a cold solve starts its automatic order at 2 whatever was
-solved before (a warm start continues at the order of its initial equilibrium). Quadrature and basis tables are
+solved before (a warm start continues at the order of its initial equilibrium). Quadrature and
+basis tables are
 cached per discretization (:meth:`torchpvs.sections.Discretization.tables`).
 
 ``torchpvs.solve(scene, ...)`` looks the plan up by ``(scene.tubes, dtype, device)``, so casual

@@ -16,8 +16,7 @@ import torch
 from .equilibrium import Equilibrium, actuation
 from .implicit import differentiable_outputs
 from .mechanics import tip_pose
-from . import newton
-from .newton import KERNELS, Problem, derivatives, scaled_residual, subset
+from .newton import KERNELS, Problem, chunked, derivatives, scaled_residual, subset
 from .plan import MAGNUS_START, ORDER_START, Plan, plan_for, tube_tensors
 from .scene import Scene, load_scene
 from .sections import Discretization, TubeTensors, n_coordinates
@@ -388,14 +387,10 @@ def _newton_step(q, prob: Problem):
     """One undamped Newton step (Jacobi-scaled; Cholesky, and LU where the Hessian is indefinite,
     as at an unstable equilibrium). Returns the new coordinates (``q`` where the step failed)
     and the success mask. Large batches go in cache-sized chunks (see newton.CHUNK_BYTES)."""
-    B, nq = q.shape
-    chunk = max(16, newton.CHUNK_BYTES // (nq * nq * q.element_size()))
-    if B > 1.5 * chunk:
-        parts = []
-        for start in range(0, B, chunk):
-            rows = torch.arange(start, min(B, start + chunk), device=q.device)
-            parts.append(_newton_step(q[rows], subset(prob, rows)))
-        return tuple(torch.cat(p) for p in zip(*parts))
+    return chunked(_one_newton_step, q, prob)
+
+
+def _one_newton_step(q, prob: Problem):
     qmask = prob.lay["qmask"]
     g, H = derivatives(q, prob)
     H.diagonal(dim1=-2, dim2=-1).add_(1.0 - qmask)

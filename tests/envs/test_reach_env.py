@@ -253,7 +253,8 @@ def test_relaxation_dissipates_energy_even_at_kinks():
 @given(seed=st.integers(0, 2**31 - 1), control=st.sampled_from(["force", "joint"]))
 @settings(max_examples=6, deadline=None)
 def test_limits_never_violated_under_random_actions(seed, control):
-    """docs/conventions.md nesting rules and the strokes hold for every state of a random rollout."""
+    """docs/conventions.md nesting rules and the strokes hold for every state of a random
+    rollout."""
     venv = CTRReachVecEnv(4, control=control, max_episode_steps=8)
     venv.seed(seed)
     venv.reset()

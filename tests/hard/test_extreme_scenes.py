@@ -1,4 +1,5 @@
-"""Hard cases of docs/physics.md: very unequal stiffnesses (1:100), high precurvature (> 30 1/m, up to
+"""Hard cases of docs/physics.md: very unequal stiffnesses (1:100), high precurvature (> 30 1/m, up
+to
 40 1/m), tubes fully retracted into the guide.
 
 Independent references: closed forms (paper eq. 31 for aligned torsionless tubes: the overlap

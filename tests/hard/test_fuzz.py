@@ -1,7 +1,8 @@
 """Fuzz test (hypothesis) over valid random scenes: 1-3 nested tubes with any valid geometry,
 precurvatures up to 40 1/m (x and y, constant or linear), stiffness ratios up to ~1:100 and more,
 insertions anywhere from fully exposed to fully retracted (including D_j = 0 and equal bases),
-any rotation, tip forces up to 2 N (docs/physics.md, "Hard cases"; scene rules: docs/conventions.md).
+any rotation, tip forces up to 2 N (docs/physics.md, "Hard cases"; scene rules:
+docs/conventions.md).
 
 Pass criteria, for every example:
 

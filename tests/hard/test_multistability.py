@@ -1,4 +1,5 @@
-"""Hard case: rotations near 180 deg with long, highly curved overlaps (docs/physics.md, "Hard cases":
+"""Hard case: rotations near 180 deg with long, highly curved overlaps (docs/physics.md, "Hard
+cases":
 several equilibria coexist; the solver must converge, report whether the equilibrium is stable,
 and give the right gradients up to the fold where the robot snaps).
 
@@ -74,7 +75,8 @@ def _branch_to(alpha2: float):
 @pytest.mark.parametrize("distance_deg", [1.0, 1e-2, 1e-4])
 def test_gradient_near_fold(distance_deg):
     """d tip / d alpha2 through the implicit backward, approaching the fold (the snap point of
-    docs/physics.md's hard case) to 1, 0.01 and 1e-4 deg. Pass: it matches central finite differences
+    docs/physics.md's hard case) to 1, 0.01 and 1e-4 deg. Pass: it matches central finite
+    differences
     of warm-started solves (step 1/100 of the distance to the fold) within 1e-3 relative, or the
     solver raised NearSingularStiffnessWarning (the explicit flag the issue allows). The gradient
     grows like 1/sqrt(distance): at 1e-4 deg it is ~100x the one at 1 deg."""

@@ -73,7 +73,8 @@ def test_random_scenes(seed):
 
 @pytest.mark.parametrize("case", ["1:100", "kappa 40", "6 tubes"])
 def test_extreme_scenes(case):
-    """Stiffness ratio 1:100, precurvature 40 1/m, a 6-tube robot (hard cases of docs/physics.md)."""
+    """Stiffness ratio 1:100, precurvature 40 1/m, a 6-tube robot (hard cases of
+    docs/physics.md)."""
     sc = {"1:100": two_tubes(10.0, 30.0, od1=3.0e-3, id1=2.0e-3, od2=0.9e-3, Ls1=0.05,
                              Ls2=0.1, D=(0.05, 0.1), alpha=(0.0, 2.0)),
           "kappa 40": two_tubes(40.0, 40.0, Lc1=0.06, Lc2=0.09, Ls1=0.05, Ls2=0.1,

@@ -1,4 +1,5 @@
-"""Hard case: sections of (nearly) zero length as tubes slide past each other (docs/physics.md, "Hard
+"""Hard case: sections of (nearly) zero length as tubes slide past each other (docs/physics.md,
+"Hard
 cases" and "Sections and bases": the section layout changes with the actuation; an empty section
 must contribute no coordinates and no singular stiffness).
 

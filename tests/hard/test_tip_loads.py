@@ -1,4 +1,5 @@
-"""Hard case: large tip loads (docs/physics.md, "Hard cases"), up to the load where the standard-model
+"""Hard case: large tip loads (docs/physics.md, "Hard cases"), up to the load where the
+standard-model
 reference itself fails.
 
 Both solvers follow the loaded branch of the paper's Fig. 3 robot (Renda et al. 2021, section
@@ -79,7 +80,8 @@ def test_large_lateral_tip_force():
 
 @pytest.mark.slow
 def test_large_axial_and_oblique_tip_force():
-    """Compressive (-z) force to 50 N (100 N: test_accuracy_delivered_under_large_axial_force) and an oblique force up to
+    """Compressive (-z) force to 50 N (100 N: test_accuracy_delivered_under_large_axial_force) and
+    an oblique force up to
     1000 N, where the reference leaves the branch (measured: PVS within 3.2e-6 m up to 500 N)."""
     check_ladder((0.0, 0.0, -1.0), [5.0, 20.0, 50.0], min_compared=3)
     check_ladder((-0.6, 0.6, -0.53), [1.0, 5.0, 20.0, 50.0, 100.0, 200.0, 500.0, 1000.0],
