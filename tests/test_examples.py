@@ -1,0 +1,34 @@
+"""Every example runs to completion and writes its figure (a quick smoke run: the numbers they
+print are checked by the physics tests they cite; here only that they still run)."""
+
+from __future__ import annotations
+
+import os
+import subprocess
+import sys
+from pathlib import Path
+
+import pytest
+
+ROOT = Path(__file__).resolve().parents[1]
+EXAMPLES = {
+    "paper_figures.py": (["--quick"], "fig4_sweeps.png"),
+    "snap_through.py": ([], "snap_through.png"),
+    "position_vs_torque_control.py": ([], "position_vs_torque.png"),
+    "design_optimization.py": ([], "design_optimization.png"),
+    "force_controller.py": ([], "force_controller.png"),
+}
+
+
+def test_every_example_is_listed():
+    assert sorted(p.name for p in (ROOT / "examples").glob("*.py")) == sorted(EXAMPLES)
+
+
+@pytest.mark.parametrize("name", sorted(EXAMPLES))
+def test_example_runs(name, tmp_path):
+    args, figure = EXAMPLES[name]
+    env = dict(os.environ, MPLBACKEND="Agg", OMP_NUM_THREADS="1")
+    subprocess.run([sys.executable, str(ROOT / "examples" / name), *args, "--out",
+                    str(tmp_path)], check=True, cwd=ROOT, env=env, capture_output=True,
+                   timeout=300)
+    assert (tmp_path / figure).stat().st_size > 10_000
