@@ -19,8 +19,9 @@ from torchpvs import Scene
 
 from .dynamics import CarriageModel
 from .reach_env import _info_field
-from .robots import Robot, make_robot
-from .task import ReachBatch, ReachConfig, compute_reward
+from .robots import Robot
+from .task import compute_reward
+from .vector import build_batch
 
 __all__ = ["CTRReachVecEnv"]
 
@@ -32,17 +33,8 @@ class CTRReachVecEnv(VecEnv):
     def __init__(self, num_envs: int = 16, robot: str | Robot | Scene = "fig3_two_tube",
                  control: str = "force", carriage: CarriageModel | dict | None = None,
                  max_episode_steps: int = 100, render_mode: str | None = None, **task: Any):
-        if not isinstance(num_envs, int) or num_envs < 1:
-            raise ValueError(f"num_envs must be an integer >= 1, got {num_envs!r}")
-        if not isinstance(max_episode_steps, int) or max_episode_steps < 1:
-            raise ValueError(f"max_episode_steps must be an integer >= 1, got "
-                             f"{max_episode_steps!r}")
-        self.robot = make_robot(robot)
-        if isinstance(carriage, dict):
-            carriage = CarriageModel(**carriage)
-        self.carriage = carriage or CarriageModel()
-        self.config = ReachConfig(control=control, **task)
-        self.task = ReachBatch(self.robot, self.config, self.carriage, num_envs)
+        self.robot, self.carriage, self.config, self.task = build_batch(
+            num_envs, robot, control, carriage, max_episode_steps, task)
         self.max_episode_steps = max_episode_steps
         self.render_mode = render_mode
         self._renderer = None

@@ -29,7 +29,25 @@ from .dynamics import CarriageModel
 from .robots import Robot, make_robot
 from .task import ReachBatch, ReachConfig
 
-__all__ = ["CTRReachVectorEnv"]
+__all__ = ["CTRReachVectorEnv", "build_batch"]
+
+
+def build_batch(num_envs: int, robot: str | Robot | Scene, control: str,
+                carriage: CarriageModel | dict | None, max_episode_steps: int,
+                task: dict) -> tuple[Robot, CarriageModel, ReachConfig, ReachBatch]:
+    """The shared core of the batched environments (this one and the SB3 adapter), with the
+    checks of their arguments: ``(robot, carriage model, task config, ReachBatch)``."""
+    if not isinstance(num_envs, int) or num_envs < 1:
+        raise ValueError(f"num_envs must be an integer >= 1, got {num_envs!r}")
+    if not isinstance(max_episode_steps, int) or max_episode_steps < 1:
+        raise ValueError(f"max_episode_steps must be an integer >= 1, got "
+                         f"{max_episode_steps!r}")
+    robot = make_robot(robot)
+    if isinstance(carriage, dict):
+        carriage = CarriageModel(**carriage)
+    carriage = carriage or CarriageModel()
+    config = ReachConfig(control=control, **task)
+    return robot, carriage, config, ReachBatch(robot, config, carriage, num_envs)
 
 
 class CTRReachVectorEnv(gym.vector.VectorEnv):
@@ -42,19 +60,10 @@ class CTRReachVectorEnv(gym.vector.VectorEnv):
     def __init__(self, num_envs: int = 16, robot: str | Robot | Scene = "fig3_two_tube",
                  control: str = "force", carriage: CarriageModel | dict | None = None,
                  max_episode_steps: int = 100, render_mode: str | None = None, **task: Any):
-        if not isinstance(num_envs, int) or num_envs < 1:
-            raise ValueError(f"num_envs must be an integer >= 1, got {num_envs!r}")
-        if not isinstance(max_episode_steps, int) or max_episode_steps < 1:
-            raise ValueError(f"max_episode_steps must be an integer >= 1, got "
-                             f"{max_episode_steps!r}")
         if render_mode not in (None, "rgb_array"):
             raise ValueError(f"render_mode must be None or 'rgb_array', got {render_mode!r}")
-        self.robot = make_robot(robot)
-        if isinstance(carriage, dict):
-            carriage = CarriageModel(**carriage)
-        self.carriage = carriage or CarriageModel()
-        self.config = ReachConfig(control=control, **task)
-        self.task = ReachBatch(self.robot, self.config, self.carriage, num_envs)
+        self.robot, self.carriage, self.config, self.task = build_batch(
+            num_envs, robot, control, carriage, max_episode_steps, task)
         self.num_envs = num_envs
         self.max_episode_steps = max_episode_steps
         self.render_mode = render_mode

@@ -153,31 +153,6 @@ def test_joint_env_moves_at_most_one_mm_and_five_degrees():
     assert dx[:2].max() <= 1e-3 + 1e-12 and dx[2:].max() <= math.radians(5) + 1e-12
 
 
-def test_vec_env_matches_single_envs():
-    """Robot i of a batch seeded with s behaves as a single env whose generator is the i-th
-    child of SeedSequence(s): same goals, and the same trajectory under the same actions (up to
-    the solver's tolerance: batched and single solves stop at different iterations)."""
-    B = 3
-    venv = CTRReachVecEnv(B)
-    venv.seed(11)
-    obs = venv.reset()
-    singles = []
-    for i, ss in enumerate(np.random.SeedSequence(11).spawn(B)):
-        e = CTRReachEnv()
-        e.reset(seed=0)
-        e.task.rngs = [np.random.default_rng(ss)]
-        e.task.reset(np.array([0]))
-        singles.append(e)
-        np.testing.assert_allclose(e._obs()["desired_goal"], obs["desired_goal"][i], atol=1e-6)
-    rng = np.random.default_rng(0)
-    for _ in range(3):
-        a = rng.uniform(-1, 1, (B, 4)).astype(np.float32)
-        obs, r, d, infos = venv.step(a)
-        for i, e in enumerate(singles):
-            o, *_ = e.step(a[i])
-            np.testing.assert_allclose(o["achieved_goal"], obs["achieved_goal"][i], atol=1e-6)
-
-
 def test_vec_env_autoreset_and_sb3_contract():
     venv = CTRReachVecEnv(2, max_episode_steps=3)
     venv.seed(0)

@@ -44,12 +44,26 @@ def test_make_vec_returns_the_batched_env(env_id):
     v.close()
 
 
-def test_batch_equals_single_envs_seeded_the_same_way():
-    """Robot i of reset(seed=s) is the single env whose generator is the i-th child of
-    SeedSequence(s): same goal, same trajectory under the same actions (to solver tolerance)."""
+def _seeded_batch(kind: str, B: int, seed: int):
+    """``(first observation, step(actions) -> observation)`` of a batch of kind ``kind``."""
+    if kind == "gymnasium":
+        v = CTRReachVectorEnv(B)
+        obs, _ = v.reset(seed=seed)
+    else:
+        v = envs.CTRReachVecEnv(B)
+        v.seed(seed)
+        obs = v.reset()
+    return obs, lambda a: v.step(a)[0]
+
+
+@pytest.mark.parametrize("kind", ["gymnasium", "sb3"])
+def test_batch_equals_single_envs_seeded_the_same_way(kind):
+    """Robot i of a batch seeded with s (Gymnasium ``reset(seed=s)``, SB3 ``seed(s)``) is the
+    single env whose generator is the i-th child of SeedSequence(s): same goal, and the same
+    trajectory under the same actions (up to the solver's tolerance: batched and single solves
+    stop at different iterations)."""
     B = 3
-    v = CTRReachVectorEnv(B)
-    obs, _ = v.reset(seed=11)
+    obs, step = _seeded_batch(kind, B, 11)
     singles = []
     for i, ss in enumerate(np.random.SeedSequence(11).spawn(B)):
         e = CTRReachEnv()
@@ -61,7 +75,7 @@ def test_batch_equals_single_envs_seeded_the_same_way():
     rng = np.random.default_rng(0)
     for _ in range(3):
         a = rng.uniform(-1, 1, (B, 4)).astype(np.float32)
-        obs, *_ = v.step(a)
+        obs = step(a)
         for i, e in enumerate(singles):
             o, *_ = e.step(a[i])
             np.testing.assert_allclose(o["achieved_goal"], obs["achieved_goal"][i], atol=1e-6)
