@@ -156,7 +156,8 @@ def build_layout(tubes: TubeTensors, D: torch.Tensor, alpha: torch.Tensor,
     # The tube forming the tip: the largest exposed length, ties -> innermost.
     idx = torch.arange(N, device=device, dtype=dtype)
     score = ell.detach() + 1e-9 * idx * (ell.detach().amax(-1, keepdim=True) + 1e-12)
-    tip_tube = torch.nn.functional.one_hot(score.argmax(-1), N).to(dtype)
+    # (a comparison rather than one_hot, which has no vmap rule)
+    tip_tube = (torch.arange(N, device=device) == score.argmax(-1, keepdim=True)).to(dtype)
     s_tip = ell.amax(-1)
     # Sections that end at or before the outer tube's distal end (for theta_j(l_1)).
     before_l1 = (cuts.detach() <= ell.detach()[:, :1] + 1e-12).to(dtype)
