@@ -3,7 +3,7 @@ the basis order and the batch size (1..4096), measured in one run.
 
     MPLBACKEND=Agg python benchmarks/scaling.py [--quick] [--out docs/figures]
 
-* tubes: valid nested robots from ``tests/hard/hardcases.py:nested_scene`` (outermost OD 4 mm,
+* tubes: valid nested robots from ``torchpvs.testing.nested_scene`` (outermost OD 4 mm,
   each tube's precurved part partly exposed beyond the one around it), 4 seeds per count, fixed
   order 3 with 8 Magnus steps per section (and the default automatic settings), cold solves;
   batched: 256 copies of seed 0 with the rotations perturbed by up to 0.05 rad;
@@ -23,7 +23,6 @@ import argparse
 import math
 import platform
 import statistics
-import sys
 import time
 import warnings
 from pathlib import Path
@@ -31,14 +30,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
+import torchpvs as tp
+from torchpvs.sections import n_coordinates
+from torchpvs.testing import nested_scene
+
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "tests" / "hard"))
-
-from hardcases import nested_scene  # noqa: E402
-
-import torchpvs as tp  # noqa: E402
-from torchpvs.sections import n_coordinates  # noqa: E402
-
 
 def timed(fn, repeat: int) -> tuple[float, object]:
     out = fn()  # warm-up

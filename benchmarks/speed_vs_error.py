@@ -6,7 +6,7 @@ standard-model reference at each integration tolerance, measured side by side in
 Configurations: the paper's Fig. 3 sweeps (Renda et al. 2021, section III-C: full overlap
 alpha2 = 0..280 deg, partial overlap 0..200 deg, by 20 deg, on the branch reached by rotating
 from 0) and seeded random 2- and 3-tube scenes (the generator of tests/test_pvs_vs_reference.py,
-copied in tests/hard/hardcases.py).
+torchpvs.testing.random_scene).
 
 Ground truth per configuration: the reference at tol 1e-12 on the branch of PVS at order 7 with
 64 Magnus steps per section; the two are cross-checked (the largest disagreement is printed) and
@@ -40,13 +40,11 @@ from pathlib import Path
 import numpy as np
 import torch
 
+import torchpvs as tp
+from torchpvs.reference import solve_standard
+from torchpvs.testing import SWEEPS, fig3, matched_reference, random_scene
+
 ROOT = Path(__file__).resolve().parents[1]
-sys.path.insert(0, str(ROOT / "tests" / "hard"))
-
-from hardcases import SWEEPS, fig3, matched_reference, random_scene  # noqa: E402
-
-import torchpvs as tp  # noqa: E402
-from torchpvs.reference import solve_standard  # noqa: E402
 
 MISS = 5e-3          # [m] a cold solve this far from the truth reached another equilibrium
 

@@ -30,6 +30,7 @@ import torchpvs
 from torchpvs import SolverOptions
 from torchpvs.reference import solve_standard
 from torchpvs.scene import Actuation, Scene, Tube
+from torchpvs.testing import random_scene
 
 MM = 1e-3
 E_NITINOL, G_NITINOL = 58.0e9, 21.5e9  # Table I of Renda et al. 2021
@@ -233,44 +234,7 @@ def test_fig3_cold_batch_lands_on_a_stable_reference_equilibrium(case):
 # ---------------------------------------------------------------------------------------------
 # 3. Seeded random 2- and 3-tube scenes
 
-def random_scene(seed: int) -> Scene:
-    """A realistic nested nitinol robot: outer diameter 1.2-3 mm, walls 0.08-0.25 mm, clearances
-    0.03-0.1 mm (the innermost tube solid 40 % of the time), lengths 50-250 mm with each tube at
-    least 10 mm longer than the one around it (capped at 250 mm), a straight part of 0-70 %,
-    constant precurvature 0-25 1/m in y, 30 %: a linear term keeping u*_y in [0, 2 u*_y(0)],
-    20 %: a constant x component up to 5 1/m. Insertions ordered D_j >= D_{j-1} >= 0 (10 %: equal
-    to the lower bound, so D_1 = 0 occurs) with exposed lengths >= 5 mm; rotations in (-pi, pi)."""
-    rng = np.random.default_rng(seed)
-    n = 2 if seed % 2 == 0 else 3
-    od = (rng.uniform(1.8, 3.0) if n == 3 else rng.uniform(1.2, 3.0)) * MM
-    tubes, L_prev = [], 0.0
-    for j in range(n):
-        wall = rng.uniform(0.08, 0.25) * MM
-        idj = od - 2 * wall
-        if j == n - 1 and rng.random() < 0.4:
-            idj = 0.0
-        L = rng.uniform(50, 180) * MM if j == 0 else rng.uniform(min(L_prev + 10 * MM, 0.25),
-                                                                  0.25)
-        straight = rng.uniform(0.0, 0.7) * L
-        curved = L - straight
-        k0 = rng.uniform(0.0, 25.0)
-        y = [k0]
-        x = []
-        if rng.random() < 0.3:
-            y.append(rng.uniform(-1, 1) * k0 / curved)
-        if rng.random() < 0.2:
-            x = [rng.uniform(-5, 5)]
-        tubes.append(Tube(E_NITINOL, G_NITINOL, idj, od, straight, curved,
-                          (tuple(x), tuple(y), ()), f"tube{j + 1}"))
-        L_prev = L
-        od = idj - rng.uniform(0.03, 0.1) * MM
-    D, lo = [], 0.0
-    for t in tubes:
-        d = lo if rng.random() < 0.1 else rng.uniform(lo, t.length - 5 * MM)
-        D.append(float(d))
-        lo = d
-    rot = [float(v) for v in rng.uniform(-math.pi, math.pi, n)]
-    return Scene(tuple(tubes), Actuation(tuple(D), tuple(rot)))
+# random_scene: the seeded generator of torchpvs.testing (shared with the benchmarks).
 
 
 def near_kink(scene: Scene, margin: float = 1 * MM) -> bool:

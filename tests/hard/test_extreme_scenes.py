@@ -14,19 +14,14 @@ import math
 
 import numpy as np
 import pytest
-from hardcases import MM, dist, matched_reference, nested_scene, one_thread, tip, two_tubes
 
 import torchpvs as tp
 from torchpvs.reference import solve_standard
 from torchpvs.scene import Actuation, Scene
+from torchpvs.testing import MM, dist, matched_reference, nested_scene, tip, two_tubes
 
 TIP_TOL = 1e-5   # the default SolverOptions.accuracy [m]
 
-
-@pytest.fixture(autouse=True, scope="module")
-def _threads():
-    with one_thread():
-        yield
 
 
 def arcs_tip(pieces) -> np.ndarray:
@@ -111,7 +106,7 @@ def test_high_precurvature_two_tubes(alpha2):
 
 @pytest.mark.parametrize("seed", [0, 1, 2])
 def test_high_precurvature_three_tubes(seed):
-    """Three nested tubes with precurvatures drawn in 5..40 1/m (tests/hard/hardcases.py)."""
+    """Three nested tubes with precurvatures drawn in 5..40 1/m (torchpvs.testing.nested_scene)."""
     sc = nested_scene(3, seed, kappa_max=40.0)
     assert max(t.precurvature[1][0] for t in sc.tubes) > 30.0 or seed != 0
     eq = tp.solve(sc)
@@ -128,7 +123,7 @@ def test_inner_tube_fully_retracted(extra):
     equilibrium is the 2-tube robot's (exactly), the retracted tube adds no coordinates, holds no
     torque, and feels no force when inside by more than its own end (D3 > L3: U* does not
     depend on D3); the reference agrees."""
-    from hardcases import random_scene
+    from torchpvs.testing import random_scene
     sc3 = random_scene(1)                   # a 3-tube robot
     L3 = sc3.tubes[2].length
     D = list(sc3.actuation.insertion[:2]) + [L3 + extra]
@@ -154,7 +149,7 @@ def test_all_tubes_retracted():
     """Every tube inside the guide: nothing beyond the orifice. Tip at the origin, no
     coordinates, converged and stable; the energy is the precurved material held straight,
     sum 1/2 EI kappa^2 Lc (docs/physics.md), as in the reference."""
-    from hardcases import fig3
+    from torchpvs.testing import fig3
     sc = fig3(D1=0.2, D2=0.31)
     eq = tp.solve(sc)
     r = solve_standard(sc)

@@ -24,7 +24,6 @@ import warnings
 
 import pytest
 import torch
-from hardcases import one_thread
 from hypothesis import HealthCheck, assume, given, settings
 from hypothesis import strategies as st
 
@@ -38,11 +37,6 @@ OPTS = SolverOptions(compute_forces=False, on_failure="ignore")
 FUZZ = settings(max_examples=40, deadline=None, derandomize=True, database=None,
                 suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
 
-
-@pytest.fixture(autouse=True, scope="module")
-def _threads():
-    with one_thread():
-        yield
 
 
 @st.composite

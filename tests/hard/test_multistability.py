@@ -17,11 +17,11 @@ import warnings
 import numpy as np
 import pytest
 import torch
-from hardcases import dist, one_thread, tip
 
 import torchpvs as tp
 from torchpvs import NearSingularStiffnessWarning, SolverOptions
 from torchpvs.reference import solve_standard
+from torchpvs.testing import dist, tip
 
 SEC3B = tp.load_scene("renda2021_section3b")
 # Fold of the branch reached by rotating alpha2 up from 0 (measured here by bisection on
@@ -30,11 +30,6 @@ SEC3B = tp.load_scene("renda2021_section3b")
 ALPHA_FOLD = 192.28822124
 FOLD_OPTS = SolverOptions(order=4, n_magnus=16, tol=1e-13, compute_forces=False)
 
-
-@pytest.fixture(autouse=True, scope="module")
-def _threads():
-    with one_thread():
-        yield
 
 
 def at(alpha2_deg: float):

@@ -13,20 +13,23 @@ import math
 import numpy as np
 import pytest
 import torch
-from hardcases import SWEEPS, dist, fig3, nested_scene, one_thread, random_scene, tip, two_tubes
 
 import torchpvs as tp
 from torchpvs import SolverOptions
+from torchpvs.testing import (
+    SWEEPS,
+    dist,
+    fig3,
+    nested_scene,
+    random_scene,
+    tip,
+    two_tubes,
+)
 
 F32 = SolverOptions(dtype=torch.float32, compute_forces=False)
 F64 = SolverOptions(dtype=torch.float64, compute_forces=False)
 TOL = 1e-4
 
-
-@pytest.fixture(autouse=True, scope="module")
-def _threads():
-    with one_thread():
-        yield
 
 
 def compare(sc, mirror_ok: bool = False, **kw):

@@ -21,11 +21,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-from hardcases import D1_FIG3, MM, dist, fig3, one_thread, tip
 
 import torchpvs as tp
 from torchpvs import SolverOptions
 from torchpvs.reference import solve_standard
+from torchpvs.testing import D1_FIG3, MM, dist, fig3, tip
 
 SC = fig3(alpha2_deg=80.0)
 L1, L2 = SC.tubes[0].length, SC.tubes[1].length
@@ -49,11 +49,6 @@ DELTA = 1e-6     # half-width of the jump test [m]
 SLOPE = 1e-4     # distance of the slope estimate [m]
 SIDE = 2e-5      # distance of the one-sided force comparison [m]
 
-
-@pytest.fixture(autouse=True, scope="module")
-def _threads():
-    with one_thread():
-        yield
 
 
 def actuation(name: str, offset: float) -> list[float]:

@@ -17,21 +17,16 @@ import warnings
 
 import numpy as np
 import pytest
-from hardcases import dist, fig3, one_thread, tip
 
 import torchpvs as tp
 from torchpvs import SolverOptions
 from torchpvs.reference import solve_standard
+from torchpvs.testing import dist, fig3, tip
 
 SC = fig3(alpha2_deg=80.0)
 TIP_TOL = 1e-5
 LATERAL = [5.0, 50.0, 200.0, 500.0, 1000.0]     # [N] along +x
 
-
-@pytest.fixture(autouse=True, scope="module")
-def _threads():
-    with one_thread():
-        yield
 
 
 def ladder(direction, loads, options=None):

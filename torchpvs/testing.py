@@ -1,5 +1,6 @@
-"""Scenes and helpers shared by the hard-case suite (``tests/hard``) and the benchmarks
-(``benchmarks/speed_vs_error.py``, ``benchmarks/scaling.py``).
+"""Test scenes and helpers: scene builders (the paper's robots, seeded random and nested robots),
+tip distances, a reference solve on PVS's branch, and one-thread execution. Shared by the test
+suite (``tests/``), the benchmarks and users who want the same scenes.
 
 Hard cases: docs/physics.md, "Hard cases the solver must survive". Scenes of the paper:
 Renda, Messer, Rucker, Boyer, IEEE RA-L 2021 (sections III-B and III-C / Fig. 3, Table I).
@@ -8,6 +9,7 @@ Frames, signs and the scene rules: docs/conventions.md.
 
 from __future__ import annotations
 
+import contextlib
 import math
 
 import numpy as np
@@ -54,10 +56,13 @@ def two_tubes(k1: float, k2: float, *, E1: float = E_NITINOL, E2: float = E_NITI
 
 
 def random_scene(seed: int) -> Scene:
-    """The seeded random 2-/3-tube generator of tests/test_pvs_vs_reference.py (copied so that
-    the benchmarks do not import a test module): realistic nested nitinol robots, outer diameter
-    1.2-3 mm, lengths 50-250 mm, straight part 0-70 %, precurvature 0-25 1/m (30 %: linear term,
-    20 %: x component), ordered insertions with >= 5 mm exposed, rotations in (-pi, pi)."""
+    """A seeded random realistic nested nitinol robot (2 tubes for even seeds, 3 for odd): outer
+    diameter 1.2-3 mm, walls 0.08-0.25 mm, clearances 0.03-0.1 mm (the innermost tube solid 40 %
+    of the time), lengths 50-250 mm with each tube at least 10 mm longer than the one around it
+    (capped at 250 mm), a straight part of 0-70 %, constant precurvature 0-25 1/m in y, 30 %: a
+    linear term keeping u*_y in [0, 2 u*_y(0)], 20 %: a constant x component up to 5 1/m.
+    Insertions ordered D_j >= D_{j-1} >= 0 (10 %: equal to the lower bound, so D_1 = 0 occurs)
+    with exposed lengths >= 5 mm; rotations in (-pi, pi)."""
     rng = np.random.default_rng(seed)
     n = 2 if seed % 2 == 0 else 3
     od = (rng.uniform(1.8, 3.0) if n == 3 else rng.uniform(1.2, 3.0)) * MM
@@ -148,13 +153,12 @@ def matched_reference(scene: Scene, pvs, tol: float = 1e-10, seed: int = 0, max_
     return None
 
 
+@contextlib.contextmanager
 def one_thread():
     """Context manager: one torch thread (tiny solves spin-wait badly on a busy 2-core box)."""
-    class _Ctx:
-        def __enter__(self):
-            self.n = torch.get_num_threads()
-            torch.set_num_threads(1)
-
-        def __exit__(self, *exc):
-            torch.set_num_threads(self.n)
-    return _Ctx()
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        yield
+    finally:
+        torch.set_num_threads(n)
