@@ -5,9 +5,10 @@
 Loads the shipped SAC+HER policy for the force/torque-action environment (the paper's Fig. 3
 robot; a residual agent on the operational-space controller, see ``training/residual.py``),
 evaluates it on seeded goals next to the model-based operational-space controller,
-prints the success rates and final errors, and saves a rendered rollout (a strip of frames with
-the actuator forces) to ``demo_out/rollout.png``. Without a policy file it demos the controller
-alone and says so.
+prints the success rates and final errors, and saves ``demo_out/reach.png``: on the first seeded
+goal the policy reaches, the tip paths of the policy and the controller (top and side views),
+their tip error over time, and the policy's actuator forces and torques. Without a policy file
+it demos the controller alone and says so.
 """
 
 from __future__ import annotations
@@ -22,20 +23,74 @@ import numpy as np
 DEFAULT_POLICY = Path(__file__).resolve().parent / "policies" / "sac_her_force.zip"
 
 
-def _strip(frames: list[np.ndarray], path: Path, titles: list[str]) -> None:
+def _episodes(policy, venv, seed: int) -> dict[str, np.ndarray]:
+    """One seeded batch of full episodes (the goals and starts of ``rollout`` with the same seed):
+    tip ``(B, T+1, 3)``, distance ``(B, T)`` [m], commanded forces/torques ``(B, T, 2N)``."""
+    venv.seed(seed)
+    obs = venv.reset()
+    tips, dist, tau = [obs["achieved_goal"].copy()], [], []
+    goal = venv.task.goal.copy()
+    for _ in range(venv.max_episode_steps):
+        obs, _, _, infos = venv.step(policy(obs))
+        tips.append(np.array([i.get("terminal_observation", {}).get("achieved_goal", o)
+                              for i, o in zip(infos, obs["achieved_goal"], strict=True)]))
+        dist.append([i["distance"] for i in infos])
+        tau.append(np.stack([i["tau"] for i in infos]))
+    return {"tip": np.stack(tips, 1), "dist": np.array(dist).T, "tau": np.stack(tau, 1),
+            "goal": goal}
+
+
+def _figure(runs: dict[str, dict], k: int, robot, path: Path, dt: float) -> None:
+    """Episode ``k`` of every policy: tip paths (top and side views), tip error over time, and
+    the first policy's actuator commands as fractions of full scale."""
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
-    fig = Figure(figsize=(3.2 * len(frames), 3.0))
+    fig = Figure(figsize=(12, 6.6))
     FigureCanvasAgg(fig)
-    for k, (img, t) in enumerate(zip(frames, titles, strict=True)):
-        ax = fig.add_subplot(1, len(frames), k + 1)
-        ax.imshow(img)
-        ax.set_title(t, fontsize=8)
-        ax.axis("off")
+    gs = fig.add_gridspec(2, 2, width_ratios=[1, 1.35])
+    styles = [dict(color="tab:blue", lw=2.2), dict(color="tab:orange", lw=1.8, ls="--")]
+    first = next(iter(runs.values()))
+    goal, start = first["goal"][k] * 1e3, first["tip"][k, 0] * 1e3
+    for row, (i, j, view) in enumerate(((0, 1, "top view"), (0, 2, "side view"))):
+        ax = fig.add_subplot(gs[row, 0])
+        for (name, r), st in zip(runs.items(), styles, strict=False):
+            ax.plot(r["tip"][k, :, i] * 1e3, r["tip"][k, :, j] * 1e3, label=name, **st)
+        ax.plot(*start[[i, j]], "o", color="k", ms=7, label="start")
+        ax.plot(*goal[[i, j]], "*", color="tab:green", ms=16, label="goal")
+        ax.set(xlabel=f"{'xyz'[i]} [mm]", ylabel=f"{'xyz'[j]} [mm]", title=f"tip path, {view}")
+        ax.set_aspect("equal", adjustable="datalim")
+        ax.grid(alpha=0.3)
+        if row == 0:
+            ax.legend(fontsize=8, loc="best")
+    ax = fig.add_subplot(gs[0, 1])
+    for (name, r), st in zip(runs.items(), styles, strict=False):
+        t = np.arange(1, r["dist"].shape[1] + 1) * dt
+        ax.semilogy(t, np.maximum(r["dist"][k] * 1e3, 1e-10), label=name, **st)
+    ax.axhline(1.0, color="gray", ls=":", lw=1)
+    ax.text(0.2, 1.2, "1 mm", color="gray", fontsize=8)
+    ax.set(xlabel="time [s]", ylabel="tip error [mm]", title="distance to the goal")
+    ax.grid(alpha=0.3, which="both")
+    ax.legend(fontsize=8)
+    ax = fig.add_subplot(gs[1, 1])
+    N = robot.n_tubes
+    scale = np.asarray(robot.action_scale)
+    t = np.arange(1, first["tau"].shape[1] + 1) * dt
+    for c in range(2 * N):
+        kind = "force on carriage" if c < N else "torque on rotation stage"
+        ax.plot(t, first["tau"][k, :, c] / scale[c], lw=1.5,
+                label=f"{kind} {c % N + 1} (full scale {scale[c]:.3g} "
+                      f"{'N' if c < N else 'N·m'})")
+    ax.set(xlabel="time [s]", ylabel="command / full scale", ylim=(-1.05, 1.05),
+           title=f"actuator commands: {next(iter(runs))}")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=7, loc="lower right")
+    fig.suptitle(f"Torque-controlled reaching, {robot.name}: seeded goal {k + 1} "
+                 f"(the first goal of the set that the first policy reaches within 1 mm)",
+                 fontsize=11)
     fig.tight_layout()
     path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=110)
+    fig.savefig(path, dpi=100)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -74,25 +129,15 @@ def main(argv: list[str] | None = None) -> int:
         s = summarize(rollout(pol, venv, args.goals, seed=args.seed, progress=False))
         print(f"  {name:>30s}: success@1mm {s['success@1mm']:.2f}, @5mm {s['success@5mm']:.2f}, "
               f"median final error {s['median_error_mm']:.3g} mm, snaps {s['snap_rate']:.2f}")
-    # a rendered rollout of the first policy on one goal
-    name, pol = next(iter(policies.items()))
-    env1 = envs.CTRReachVecEnv(1, control="force", snap_mode="continue")
-    env1.seed(args.seed)
-    obs = env1.reset()
-    from envs.render import ReachRenderer
-    r = ReachRenderer(env1.robot)
-    frames, titles = [r.draw(env1.task, 0)], ["t = 0 s"]
-    if name.startswith("SAC"):
-        pol = load_policy(args.policy, env1)
-    else:
-        pol = OperationalSpaceController(env1)
-    for t in range(1, 61):
-        obs, _, _, infos = env1.step(pol(obs))
-        if t in (5, 15, 30, 60):
-            frames.append(r.draw(env1.task, 0))
-            titles.append(f"t = {t * 0.1:.1f} s, error {infos[0]['distance'] * 1e3:.2f} mm")
-    _strip(frames, out / "rollout.png", titles)
-    print(f"saved {out / 'rollout.png'} ({name})")
+    # The figure: every policy on the same seeded goals; the first goal the first policy
+    # reaches (episode 0 if it reaches none) is drawn, with its tip error and commands.
+    runs = {name: _episodes(pol, venv, args.seed) for name, pol in policies.items()}
+    first = next(iter(runs.values()))
+    hits = np.flatnonzero(first["dist"][:, -1] <= 1e-3)
+    k = int(hits[0]) if len(hits) else 0
+    _figure(runs, k, venv.robot, out / "reach.png", venv.carriage.control_period)
+    print(f"saved {out / 'reach.png'} (goal {k + 1} of {args.goals}; final errors: "
+          + ", ".join(f"{n} {r['dist'][k, -1] * 1e3:.3g} mm" for n, r in runs.items()) + ")")
     return 0
 
 

@@ -192,4 +192,4 @@ def test_shipped_policy_demo_runs(tmp_path, capsys):
     assert demo.main(["--goals", "2", "-o", str(tmp_path)]) == 0
     out = capsys.readouterr().out
     assert "SAC+HER residual on OSC" in out and "operational-space controller" in out
-    assert (tmp_path / "rollout.png").stat().st_size > 10_000
+    assert (tmp_path / "reach.png").stat().st_size > 10_000
