@@ -5,7 +5,7 @@ VENV := .venv
 BIN := $(VENV)/bin
 STAMP := $(VENV)/.installed
 
-.PHONY: demo test test-slow venv clean lint
+.PHONY: demo test test-slow venv clean lint api
 
 $(STAMP): pyproject.toml constraints.txt
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
@@ -25,8 +25,11 @@ test: $(STAMP)
 test-slow: $(STAMP)
 	MPLBACKEND=Agg $(BIN)/python -m pytest -q -m slow -p no:cacheprovider
 
+api: $(STAMP)
+	$(BIN)/pdoc --docformat google -o site torchpvs envs training
+
 lint: $(STAMP)
 	$(BIN)/ruff check torchpvs envs training tests benchmarks examples
 
 clean:
-	rm -rf $(VENV) build *.egg-info
+	rm -rf $(VENV) build *.egg-info site

@@ -23,8 +23,8 @@ from .robots import ROBOTS, Robot, fig3_two_tube, make_robot, rvim_three_tube
 from .task import ReachConfig
 from .vector import CTRReachVectorEnv
 
-__all__ = ["CTRReachEnv", "CTRReachVecEnv", "CTRReachVectorEnv", "CarriageModel", "ReachConfig",
-           "Robot",
+# (CTRReachVecEnv, the SB3 adapter, is an attribute loaded on first use: see __getattr__.)
+__all__ = ["CTRReachEnv", "CTRReachVectorEnv", "CarriageModel", "ReachConfig", "Robot",
            "RobotBatch", "ROBOTS", "make_robot", "fig3_two_tube", "rvim_three_tube",
            "ENV_IDS"]
 
