@@ -162,3 +162,55 @@ def one_thread():
         yield
     finally:
         torch.set_num_threads(n)
+
+
+def scene_strategy(max_tubes: int = 3):
+    """A hypothesis strategy of valid scene dicts (``Scene.from_dict`` input) for property tests:
+    1..``max_tubes`` nested nitinol-like tubes (outer diameter 1-4 mm, walls 0.05-0.4 mm, moduli
+    down to 1/100 of nitinol's), straight, curved or mixed, precurvature up to 40 1/m in y (with
+    optional x and linear terms), insertions equal, free or fully retracted, rotations in
+    (-pi, pi), and half the time a tip force up to 2 N. Needs ``hypothesis`` (a dev extra)."""
+    from hypothesis import strategies as st
+
+    @st.composite
+    def scene_dicts(draw):
+        n = draw(st.integers(1, max_tubes))
+        od = draw(st.floats(1.0, 4.0)) * MM
+        tubes, L = [], draw(st.floats(20.0, 150.0)) * MM
+        for j in range(n):
+            wall = draw(st.floats(0.05, 0.4)) * MM
+            solid = j == n - 1 and draw(st.booleans())
+            idj = 0.0 if solid or od - 2 * wall <= 0.1 * MM else od - 2 * wall
+            curved_frac = draw(st.sampled_from([0.0, 1.0, draw(st.floats(0.05, 0.95))]))
+            pre = {"y": [draw(st.floats(-40.0, 40.0))]}
+            if draw(st.booleans()):
+                pre["x"] = [draw(st.floats(-10.0, 10.0))]
+            if draw(st.booleans()):
+                c = pre["y"][0]
+                pre["y"].append(draw(st.floats(-1.0, 1.0)) * abs(c) / max(L * curved_frac, 1e-3))
+            tubes.append({"E": draw(st.sampled_from([58e9, 58e9, 5.8e9, 0.58e9])), "G": 21.5e9,
+                          "inner_diameter": idj, "outer_diameter": od,
+                          "straight_length": L * (1 - curved_frac),
+                          "curved_length": L * curved_frac, "precurvature": pre})
+            if idj <= 0.0:
+                break
+            od = idj - draw(st.floats(0.02, 0.2)) * MM
+            if od <= 0.2 * MM:
+                break
+            L += draw(st.floats(0.0, 80.0)) * MM
+        D, lo = [], 0.0
+        for t in tubes:
+            L_t = t["straight_length"] + t["curved_length"]
+            kind = draw(st.sampled_from(["same", "free", "free", "free", "retracted"]))
+            d = lo if kind == "same" else (max(lo, L_t + draw(st.floats(0.0, 10.0)) * MM)
+                                           if kind == "retracted" else
+                                           lo + draw(st.floats(0.0, 1.0)) * max(L_t - lo, 0.0))
+            D.append(d)
+            lo = d
+        rot = [draw(st.floats(-math.pi, math.pi)) for _ in tubes]
+        out = {"tubes": tubes, "actuation": {"insertion": D, "rotation": rot}}
+        if draw(st.booleans()):
+            out["load"] = {"tip_force": [draw(st.floats(-2.0, 2.0)) for _ in range(3)]}
+        return out
+
+    return scene_dicts()

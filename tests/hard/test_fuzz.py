@@ -19,7 +19,6 @@ Invalid scenes (one field broken in a valid scene) raise ``SceneError`` naming t
 
 from __future__ import annotations
 
-import math
 import warnings
 
 import pytest
@@ -31,54 +30,13 @@ import torchpvs as tp
 from torchpvs import SceneError, SolverOptions
 from torchpvs.mechanics import potential
 from torchpvs.scene import Scene
+from torchpvs.testing import scene_strategy
 
 MM = 1e-3
 OPTS = SolverOptions(compute_forces=False, on_failure="ignore")
 FUZZ = settings(max_examples=40, deadline=None, derandomize=True, database=None,
                 suppress_health_check=[HealthCheck.too_slow, HealthCheck.data_too_large])
 
-
-
-@st.composite
-def scene_dicts(draw, max_tubes: int = 3):
-    n = draw(st.integers(1, max_tubes))
-    od = draw(st.floats(1.0, 4.0)) * MM
-    tubes, L = [], draw(st.floats(20.0, 150.0)) * MM
-    for j in range(n):
-        wall = draw(st.floats(0.05, 0.4)) * MM
-        solid = j == n - 1 and draw(st.booleans())
-        idj = 0.0 if solid or od - 2 * wall <= 0.1 * MM else od - 2 * wall
-        curved_frac = draw(st.sampled_from([0.0, 1.0, draw(st.floats(0.05, 0.95))]))
-        pre = {"y": [draw(st.floats(-40.0, 40.0))]}
-        if draw(st.booleans()):
-            pre["x"] = [draw(st.floats(-10.0, 10.0))]
-        if draw(st.booleans()):
-            c = pre["y"][0]
-            pre["y"].append(draw(st.floats(-1.0, 1.0)) * abs(c) / max(L * curved_frac, 1e-3))
-        tubes.append({"E": draw(st.sampled_from([58e9, 58e9, 5.8e9, 0.58e9])), "G": 21.5e9,
-                      "inner_diameter": idj, "outer_diameter": od,
-                      "straight_length": L * (1 - curved_frac),
-                      "curved_length": L * curved_frac, "precurvature": pre})
-        if idj <= 0.0:
-            break
-        od = idj - draw(st.floats(0.02, 0.2)) * MM
-        if od <= 0.2 * MM:
-            break
-        L += draw(st.floats(0.0, 80.0)) * MM
-    D, lo = [], 0.0
-    for t in tubes:
-        L_t = t["straight_length"] + t["curved_length"]
-        kind = draw(st.sampled_from(["same", "free", "free", "free", "retracted"]))
-        d = lo if kind == "same" else (max(lo, L_t + draw(st.floats(0.0, 10.0)) * MM)
-                                       if kind == "retracted" else
-                                       lo + draw(st.floats(0.0, 1.0)) * max(L_t - lo, 0.0))
-        D.append(d)
-        lo = d
-    rot = [draw(st.floats(-math.pi, math.pi)) for _ in tubes]
-    out = {"tubes": tubes, "actuation": {"insertion": D, "rotation": rot}}
-    if draw(st.booleans()):
-        out["load"] = {"tip_force": [draw(st.floats(-2.0, 2.0)) for _ in range(3)]}
-    return out
 
 
 def stationarity(eq, n_dirs: int = 3, seed: int = 0) -> float:
@@ -113,7 +71,7 @@ def stationarity(eq, n_dirs: int = 3, seed: int = 0) -> float:
 
 
 @FUZZ
-@given(scene_dicts())
+@given(scene_strategy())
 def test_valid_scenes_never_nan_never_false_convergence(data):
     sc = Scene.from_dict(data)
     with warnings.catch_warnings():
@@ -192,7 +150,7 @@ KINDS = ["E", "G", "nan E", "inner_diameter", "outer_diameter", "straight_length
 
 @settings(max_examples=60, deadline=None, derandomize=True, database=None,
           suppress_health_check=[HealthCheck.too_slow, HealthCheck.filter_too_much])
-@given(scene_dicts(), st.sampled_from(KINDS), st.integers(0, 2))
+@given(scene_strategy(), st.sampled_from(KINDS), st.integers(0, 2))
 def test_invalid_scenes_name_the_field(data, kind, i):
     """docs/conventions.md: a scene that breaks a rule gets an error naming the tube, the field and
     the rule, never a traceback from inside the solver and never a silent fix."""
@@ -206,7 +164,7 @@ def test_invalid_scenes_name_the_field(data, kind, i):
 
 
 @FUZZ
-@given(scene_dicts(), st.sampled_from(["insertion", "order", "shape", "nan"]))
+@given(scene_strategy(), st.sampled_from(["insertion", "order", "shape", "nan"]))
 def test_invalid_solve_overrides_name_the_argument(data, kind):
     """Overrides passed to solve() are checked too (solver.py): a ValueError naming the
     argument, before any work."""
