@@ -182,3 +182,19 @@ def test_options_bounds_are_validated():
         tp.SolverOptions(load_steps=0)
     with pytest.raises(ValueError, match="options.max_total_iter"):
         tp.SolverOptions(max_total_iter=0)
+
+
+def test_plan_reuse_is_not_fooled_by_reused_buffers():
+    """The robot's plan reuses the layout of the last insertions: a caller that mutates its
+    insertion buffer after a solve must not change what a later solve at the old insertions
+    sees (the plan keeps its own copies)."""
+    D = torch.tensor([[0.05, SC.actuation.insertion[1]]], dtype=torch.float64)  # no force kink
+    first = tp.solve(SC, insertion=D, rotation=[0.0, 2.0])
+    D[0, 1] -= 0.05                    # the caller reuses its buffer
+    again = tp.solve(SC, insertion=[0.05, SC.actuation.insertion[1]], rotation=[0.0, 2.0])
+    assert float((again.tip_position - first.tip_position).norm()) < 1e-12
+    assert torch.allclose(again.actuation_forces, first.actuation_forces, atol=1e-12)
+    # (the relative twist at the outer tip reads the insertions held by the layout: it moved by
+    # 0.21 rad when the plan kept a reference to the caller's buffer)
+    assert torch.allclose(again.relative_rotation_at_outer_tip,
+                          first.relative_rotation_at_outer_tip, atol=1e-12)

@@ -262,7 +262,8 @@ def _solve(scene: Scene, tubes: TubeTensors, D, A, F, M, opts: SolverOptions, in
     # at alpha - 2 pi k (k constant, no gradient) keeps cos/sin accurate for large angles.
     A = A - (2 * math.pi) * torch.round(A.detach() / (2 * math.pi))
     D_in, A_in, F_in, M_in, tubes_in = D, A, F, M, tubes
-    D, A, F, M = (t.detach() for t in (D, A, F, M))
+    # Owned copies: the plan keeps layouts that refer to them (a caller may reuse its buffers).
+    D, A, F, M = (t.detach().clone() for t in (D, A, F, M))
     if needs_grad:
         tubes = TubeTensors(*(t.detach() for t in (tubes.EI, tubes.GJ, tubes.length,
                                                    tubes.straight, tubes.coef)))
