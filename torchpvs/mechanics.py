@@ -255,7 +255,21 @@ def build_maps(lay: dict[str, torch.Tensor], tab: dict[str, torch.Tensor],
     return {"ustar": ustar.detach(), "W": W, "EIp": EIp, "GJp": GJp, "H_const": H_const,
             "guide": guide, "guide_const": lay["guide_const"].detach(), "h": h,
             "qmask": qmask, "psi0": lay["psi0"].detach(), "bvec": angle_bases(lay, nq),
-            "phi": phi, "Qb": tab["Q_q"]}
+            "phi": phi, "Qb": tab["Q_q"], **_node_tables(phi, tab["Q_q"])}
+
+
+
+def _node_tables(phi: torch.Tensor, Qb: torch.Tensor) -> dict[str, torch.Tensor]:
+    """Contraction tables over the quadrature nodes, so that each node sum is one matmul:
+    ``values_T (n, 2Q)`` gives phi and Q values from coefficients; ``Q_QQ (Q, n + n^2)`` and
+    ``phi_PQ (Q, n + n^2)`` give ``sum_q f_q Q_qp`` with ``sum_q f_q Q_qp Q_qr`` (and the phi
+    analogues) in one product."""
+    Q, n = phi.shape
+    QQ = (Qb[:, :, None] * Qb[:, None, :]).reshape(Q, n * n)
+    PQ = (phi[:, :, None] * Qb[:, None, :]).reshape(Q, n * n)
+    return {"values_T": torch.cat([phi, Qb], 0).T.contiguous(),
+            "Q_QQ": torch.cat([Qb, QQ], -1).contiguous(),
+            "phi_PQ": torch.cat([phi, PQ], -1).contiguous()}
 
 
 def _section_blocks(H: torch.Tensor, N: int, S: int, C: int, n: int) -> torch.Tensor:
@@ -266,14 +280,14 @@ def _section_blocks(H: torch.Tensor, N: int, S: int, C: int, n: int) -> torch.Te
 
 
 def _local(q: torch.Tensor, maps: dict[str, torch.Tensor]):
-    bvec, phi, Qb = maps["bvec"], maps["phi"], maps["Qb"]
+    bvec = maps["bvec"]
     B, S, N, _ = bvec.shape
+    Q = maps["phi"].shape[0]
     X = (q[:, N:] * maps["qmask"][:, N:]).reshape(B, S, 2 + N, -1)
-    u = torch.einsum("bsdp,qp->bsqd", X[:, :, :2], phi)
-    dp = torch.einsum("bsjp,qp->bsqj", X[:, :, 2:], phi)
+    Y = (X @ maps["values_T"]).transpose(-1, -2)                          # (B, S, 2Q, C)
+    u, dp, loc = Y[:, :, :Q, :2], Y[:, :, :Q, 2:], Y[:, :, Q:, 2:]
     base = maps["psi0"][:, None, :] + (bvec.reshape(B, S * N, -1) @ q[:, :, None]).reshape(B, S, N)
-    psi = base[:, :, None, :] + 0.5 * maps["h"][:, :, None, None] * torch.einsum(
-        "bsjp,qp->bsqj", X[:, :, 2:], Qb)
+    psi = base[:, :, None, :] + 0.5 * maps["h"][:, :, None, None] * loc
     us = maps["ustar"]
     cs, sn = torch.cos(psi), torch.sin(psi)
     Ru = torch.stack([cs * us[..., 0] - sn * us[..., 1], sn * us[..., 0] + cs * us[..., 1]], -1)
@@ -310,28 +324,31 @@ def elastic_grad_hess(q: torch.Tensor, maps: dict[str, torch.Tensor]):
     gpsi = -EIw * cross                                                     # (B, S, Q, N)
     gdp = W * maps["GJp"] * (dp - us[..., 2])
     hh = 0.5 * maps["h"][:, :, None, None]
-    gX = torch.cat([torch.einsum("bsqd,qp->bsdp", gu, phi),
-                    torch.einsum("bsqj,qp->bsjp", gdp, phi)
-                    + hh * torch.einsum("bsqj,qp->bsjp", gpsi, Qb)], 2)    # (B, S, C, n)
+    gX = torch.cat([gu.transpose(-1, -2) @ phi,
+                    gdp.transpose(-1, -2) @ phi + hh * (gpsi.transpose(-1, -2) @ Qb)],
+                   2)                                                       # (B, S, C, n)
     bflat = bvec.reshape(B, S * N, nq)
     grad = (gpsi.sum(2).reshape(B, 1, S * N) @ bflat)[:, 0] + maps["guide"] * q
     grad[:, N:] += gX.reshape(B, -1) * maps["qmask"][:, N:]
     # Angle terms of the Hessian, reduced over nodes per (section, tube).
     hpp = EIw * (u[..., None, :] * Ru).sum(-1)                              # (B, S, Q, N)
     alpha = hpp.sum(2)                                                      # (B, S, N)
-    beta = hh * torch.einsum("bsqj,qp->bsjp", hpp, Qb)                      # (B, S, N, n)
-    gamma = hh[..., None] ** 2 * torch.einsum("bsqj,qp,qr->bsjpr", hpp, Qb, Qb)
+    HQ = hpp.transpose(-1, -2) @ maps["Q_QQ"]                               # (B, S, N, n + n^2)
+    beta = hh * HQ[..., :n]                                                 # (B, S, N, n)
+    gamma = hh[..., None] ** 2 * HQ[..., n:].reshape(B, S, N, n, n)
     JRu = torch.stack([-Ru[..., 1], Ru[..., 0]], -1)
     hup = -EIw[..., None] * JRu                                             # (B, S, Q, N, 2)
-    mu = torch.einsum("bsqjd,qp->bsjdp", hup, phi)                          # (B, S, N, 2, n)
-    nu = hh[..., None, None] * torch.einsum("bsqjd,qp,qr->bsjdpr", hup, phi, Qb)
+    MP = hup.permute(0, 1, 3, 4, 2) @ maps["phi_PQ"]                        # (B, S, N, 2, n+n^2)
+    mu = MP[..., :n]                                                        # (B, S, N, 2, n)
+    nu = hh[..., None, None] * MP[..., n:].reshape(B, S, N, 2, n, n)
     # b_kj-rows: alpha b b^T + b (beta at c_kj)^T + (mu at a_k) b^T, then symmetrized.
     V = 0.5 * alpha.reshape(B, -1, 1) * bflat                               # (B, S N, nq)
     Vc = V[:, :, N:].view(B, S, N, S, C, n).diagonal(dim1=1, dim2=3)        # (B, N, C, n, S)
     Vc[:, :, 2:].diagonal(dim1=1, dim2=2).add_(beta.permute(0, 3, 1, 2))    # (B, n, S, N)
     # Half the (symmetric) constant part rides along, so that H = T + T^T in one pass.
     T = torch.baddbmm(maps["H_const"], bflat.transpose(1, 2), V, beta=0.5)
-    T[:, N:, :].view(B, S, C, n, nq)[:, :, :2] += torch.einsum("bkjdp,bkjm->bkdpm", mu, bvec)
+    T[:, N:, :].view(B, S, C, n, nq)[:, :, :2] += (
+        mu.reshape(B, S, N, 2 * n).transpose(-1, -2) @ bvec).view(B, S, 2, n, nq)
     # Blocks within a section: gamma (c_kj, c_kj), counted twice by T + T^T, and nu (a_k, c_kj)
     # on one side only.
     blocks = _section_blocks(T, N, S, C, n)                                 # (B, C, n, C, n, S)

@@ -50,7 +50,7 @@ class Problem(NamedTuple):
     has_moment: bool
 
 
-_SHARED = ("phi", "Qb")          # maps entries without a batch dimension
+_SHARED = ("phi", "Qb", "values_T", "Q_QQ", "phi_PQ")   # maps entries without a batch dim
 
 
 def subset(prob: Problem, idx: torch.Tensor, merit_only: bool = False) -> Problem:
