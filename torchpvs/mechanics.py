@@ -25,16 +25,18 @@ __all__ = ["elastic_energy", "node_fields", "potential", "section_start_poses", 
 
 def _poly(coef: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
     """``coef (..., N, 3, P)``, ``t (..., N)`` -> ``(..., N, 3)``."""
-    out = torch.zeros(t.shape + (3,), dtype=t.dtype, device=t.device)
-    for p in range(coef.shape[-1] - 1, -1, -1):
+    P = coef.shape[-1]
+    out = coef[..., P - 1].expand(t.shape + (3,))    # Horner from the leading coefficient
+    for p in range(P - 2, -1, -1):
         out = out * t[..., None] + coef[..., p]
     return out
 
 
 def _poly_int(coef: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
     """``int_0^t`` of the z-polynomial: ``coef (..., N, P)``, ``t (..., N)`` -> ``(..., N)``."""
-    out = torch.zeros_like(t)
-    for p in range(coef.shape[-1] - 1, -1, -1):
+    P = coef.shape[-1]
+    out = coef[..., P - 1] / P * t
+    for p in range(P - 2, -1, -1):
         out = (out + coef[..., p] / (p + 1)) * t
     return out
 
@@ -66,9 +68,9 @@ def node_fields(q: torch.Tensor, lay: dict[str, torch.Tensor], xi: torch.Tensor,
     t = s[..., None] - lay["tau"][..., None, None, :]                      # (..., S, G, N)
     coef = lay["coef"][..., None, None, :, :, :]                           # (..., 1, 1, N, 3, P)
     ustar = _poly(coef, t) * curved[..., None, :, None]
-    # phi/Qb are (G, n) or (..., S, G, n): broadcast products rather than einsum.
-    u = (a[..., None, :, :] * phi[..., None, :]).sum(-1)                 # (..., S, G, 2)
-    dpsi = (c[..., None, :, :] * phi[..., None, :]).sum(-1)              # (..., S, G, N)
+    # phi/Qb are (G, n) or (..., S, G, n): matmul broadcasts over both.
+    u = (a @ phi.transpose(-1, -2)).transpose(-1, -2)                    # (..., S, G, 2)
+    dpsi = (c @ phi.transpose(-1, -2)).transpose(-1, -2)                 # (..., S, G, N)
     # Prescribed sections: strain = precurvature (twist u*_z integrated exactly).
     zc = lay["coef"][..., 2, :][..., None, :, :]                           # (..., 1, N, P)
     t0 = start[..., None] - lay["tau"][..., None, :]                       # (..., S, N)
@@ -81,7 +83,7 @@ def node_fields(q: torch.Tensor, lay: dict[str, torch.Tensor], xi: torch.Tensor,
     psi0 = lay["psi0"] + lay["D"] * w
     psi_start = psi0[..., None, :] + torch.cumsum(inc, -2) - inc
     psi = (psi_start[..., None, :] + 0.5 * h[..., None, None] *
-           (c[..., None, :, :] * Qb[..., None, :]).sum(-1) + presc_local)
+           (c @ Qb.transpose(-1, -2)).transpose(-1, -2) + presc_local)
     cs, sn = torch.cos(psi), torch.sin(psi)
     ux, uy = ustar[..., 0], ustar[..., 1]
     Ru = torch.stack([cs * ux - sn * uy, sn * ux + cs * uy], -1)
