@@ -198,3 +198,19 @@ def test_plan_reuse_is_not_fooled_by_reused_buffers():
     # 0.21 rad when the plan kept a reference to the caller's buffer)
     assert torch.allclose(again.relative_rotation_at_outer_tip,
                           first.relative_rotation_at_outer_tip, atol=1e-12)
+
+
+def test_chunked_batches_equal_the_whole_batch(monkeypatch):
+    """Large batches run in cache-sized chunks (newton.CHUNK_BYTES): elements are independent, so
+    a chunked solve gives the same equilibria, forces and verdicts as one whole batch."""
+    import torchpvs.newton as newton
+
+    alpha = torch.linspace(0.0, 4.0, 40, dtype=torch.float64)
+    rot = torch.stack([torch.zeros_like(alpha), alpha], -1)
+    whole = tp.solve(SC, rotation=rot)
+    monkeypatch.setattr(newton, "CHUNK_BYTES", 1)      # chunks of 16 elements
+    parts = tp.solve(SC, rotation=rot)
+    assert float((whole.tip_position - parts.tip_position).abs().max()) < 1e-12
+    assert float((whole.actuation_forces - parts.actuation_forces).abs().max()) < 1e-9
+    assert torch.equal(whole.stable, parts.stable) and torch.equal(whole.converged,
+                                                                   parts.converged)
