@@ -8,6 +8,7 @@ from .continuation import ActuationPath, Continuation, FoldEvent, continuation
 from .equilibrium import Equilibrium
 from .force_control import ForceControlled, solve_force_controlled
 from .implicit import NearSingularStiffnessWarning
+from .inverse_kinematics import IKResult, inverse_kinematics
 from .layer import CTR
 from .plan import Plan
 from .scene import Actuation, Load, Scene, SceneError, Tube, builtin_scenes, load_scene
@@ -18,6 +19,6 @@ __all__ = [
     "SolverOptions", "SolverError", "AccuracyWarning", "Plan", "solve", "Equilibrium", "CTR",
     "NearSingularStiffnessWarning",
     "continuation", "ActuationPath", "Continuation", "FoldEvent",
-    "solve_force_controlled", "ForceControlled",
+    "solve_force_controlled", "ForceControlled", "inverse_kinematics", "IKResult",
 ]
 __version__ = "0.1.0"
