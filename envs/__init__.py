@@ -13,6 +13,9 @@ each with a natively batched ``gymnasium.vector.VectorEnv`` as its ``vector_entr
 :class:`envs.CTRReachVectorEnv`). ``envs.CTRReachVecEnv`` is the same batch as a
 Stable-Baselines3 ``VecEnv``; it is imported on first use, so ``import envs`` needs only
 Gymnasium (and torchpvs).
+
+Controllers read the robots through ``state()`` on any of the three (a :class:`RobotState` of
+copies: actuation, velocities, elastic forces, tip, goal, margin, warm start, damping, scales).
 """
 
 from gymnasium.envs.registration import register, registry
@@ -20,12 +23,12 @@ from gymnasium.envs.registration import register, registry
 from .dynamics import CarriageModel, RobotBatch
 from .reach_env import CTRReachEnv
 from .robots import ROBOTS, Robot, fig3_two_tube, make_robot, rvim_three_tube
-from .task import ReachConfig
+from .task import ReachConfig, RobotState
 from .vector import CTRReachVectorEnv
 
 # (CTRReachVecEnv, the SB3 adapter, is an attribute loaded on first use: see __getattr__.)
 __all__ = ["CTRReachEnv", "CTRReachVectorEnv", "CarriageModel", "ReachConfig", "Robot",
-           "RobotBatch", "ROBOTS", "make_robot", "fig3_two_tube", "rvim_three_tube",
+           "RobotBatch", "RobotState", "ROBOTS", "make_robot", "fig3_two_tube", "rvim_three_tube",
            "ENV_IDS"]
 
 MAX_EPISODE_STEPS = 100

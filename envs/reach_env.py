@@ -16,7 +16,7 @@ from torchpvs import Scene
 
 from .dynamics import CarriageModel
 from .robots import Robot, make_robot
-from .task import ReachBatch, ReachConfig, compute_reward
+from .task import ReachBatch, ReachConfig, RobotState, compute_reward
 
 __all__ = ["CTRReachEnv"]
 
@@ -96,6 +96,12 @@ class CTRReachEnv(gym.Env):
         r = compute_reward(achieved_goal, desired_goal, self.task.tolerance, self.config.reward,
                            self.config.dense_scale, snapped, self.config.snap_penalty)
         return r if r.ndim else float(r)
+
+    def state(self) -> RobotState:
+        """The robot's state (:class:`~envs.task.RobotState`, copies) with the batch axis
+        kept: ``x`` is ``(1, 2N)``, ``tip`` ``(1, 3)``, ``margin`` ``(1,)``, so controllers
+        written for the batched envs run unchanged on this one."""
+        return self.task.state()
 
     def set_tolerance(self, tolerance: float) -> None:
         """Success radius [m] from now on (curricula)."""

@@ -37,7 +37,7 @@ from gymnasium import spaces
 from .dynamics import CarriageModel, RobotBatch
 from .robots import Robot, solve_batch
 
-__all__ = ["ReachConfig", "ReachBatch", "OBS_BOUND", "compute_reward"]
+__all__ = ["ReachConfig", "ReachBatch", "RobotState", "OBS_BOUND", "compute_reward"]
 
 OBS_BOUND = 10.0
 
@@ -97,6 +97,44 @@ class ReachConfig:
         if not (_real(self.goal_min_distance) and self.goal_min_distance >= 0):
             raise ValueError(f"goal_min_distance must be a finite length >= 0 [m], got "
                              f"{self.goal_min_distance!r}")
+
+
+@dataclass(frozen=True)
+class RobotState:
+    """What a controller may read of ``B`` robots: the one documented way to read state
+    (:meth:`ReachBatch.state`, ``CTRReachEnv.state()``, ``CTRReachVectorEnv.state()``,
+    ``CTRReachVecEnv.state()``). Every array is a float64 copy, batched over robots (``B = 1``
+    for the single env); nothing here aliases the environment's internal arrays.
+
+    Attributes:
+        x: ``(B, 2N)`` actuator coordinates: insertions ``D`` [m] then base rotations
+            ``alpha`` [rad], tubes outermost first (docs/conventions.md).
+        v: ``(B, 2N)`` carriage velocities [m/s, rad/s] (the last substep's; zero at rest and
+            in joint control between steps).
+        g: ``(B, 2N)`` elastic actuation forces/torques ``dU*/dx`` [N, N·m]: the
+            force/torque that holds the carriages still at ``x`` (``tau = g`` means rest).
+        tip: ``(B, 3)`` [m] tip position in the base frame.
+        goal: ``(B, 3)`` [m] goal position in the base frame.
+        margin: ``(B,)`` stability margin (smallest eigenvalue of the scaled stiffness;
+            ``<= 0`` means unstable).
+        q: ``(B, nq)`` the solver coordinates of the last equilibrium; pass as ``initial=``
+            to ``torchpvs.solve`` to warm-start a solve near the current state.
+        damping: ``(2N,)`` [N·s/m, N·m·s/rad] carriage damping ``b`` (``b xdot = tau - g``).
+        action_scale: ``(2N,)`` [N, N·m] force/torque at action ``+-1`` (``tau = a * scale``
+            for raw force actions).
+        control_period: [s] time per environment step.
+    """
+
+    x: np.ndarray
+    v: np.ndarray
+    g: np.ndarray
+    tip: np.ndarray
+    goal: np.ndarray
+    margin: np.ndarray
+    q: np.ndarray
+    damping: np.ndarray
+    action_scale: np.ndarray
+    control_period: float
 
 
 def _real(v) -> bool:
@@ -329,6 +367,16 @@ class ReachBatch:
         return {"observation": obs.astype(np.float32),
                 "achieved_goal": rb.tip.astype(np.float32),
                 "desired_goal": self.goal.astype(np.float32)}
+
+    def state(self) -> RobotState:
+        """The robots' state as a :class:`RobotState` of copies (``(B, ...)`` arrays)."""
+        rb = self.robots
+        q = np.zeros((self.B, 0)) if rb.q is None else rb.q.detach().numpy()
+        return RobotState(x=rb.x.copy(), v=rb.v.copy(), g=rb.g.copy(), tip=rb.tip.copy(),
+                          goal=self.goal.copy(), margin=rb.margin.copy(),
+                          q=np.array(q, dtype=np.float64, copy=True),
+                          damping=rb.damping.copy(), action_scale=self.robot.action_scale,
+                          control_period=float(self.carriage.control_period))
 
     def set_tolerance(self, tolerance: float) -> None:
         if not (tolerance > 0 and math.isfinite(tolerance)):

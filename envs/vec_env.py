@@ -20,7 +20,7 @@ from torchpvs import Scene
 from .dynamics import CarriageModel
 from .reach_env import _info_field
 from .robots import Robot
-from .task import compute_reward
+from .task import RobotState, compute_reward
 from .vector import build_batch
 
 __all__ = ["CTRReachVecEnv"]
@@ -115,6 +115,11 @@ class CTRReachVecEnv(VecEnv):
         return [False for _ in self._get_indices(indices)]
 
     # -- convenience --------------------------------------------------------------------------
+    def state(self) -> RobotState:
+        """The robots' state (:class:`~envs.task.RobotState`, copies, ``(num_envs, ...)``);
+        after an autoreset it is the new episode's start, like the returned observation."""
+        return self.task.state()
+
     def set_tolerance(self, tolerance: float) -> None:
         self.task.set_tolerance(tolerance)
 

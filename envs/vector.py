@@ -27,7 +27,7 @@ from torchpvs import Scene
 
 from .dynamics import CarriageModel
 from .robots import Robot, make_robot
-from .task import ReachBatch, ReachConfig
+from .task import ReachBatch, ReachConfig, RobotState
 
 __all__ = ["CTRReachVectorEnv", "build_batch"]
 
@@ -113,6 +113,11 @@ class CTRReachVectorEnv(gym.vector.VectorEnv):
 
     def _obs(self) -> dict[str, np.ndarray]:
         return {k: v.copy() for k, v in self.task.observations().items()}
+
+    def state(self) -> RobotState:
+        """The robots' state (:class:`~envs.task.RobotState`, copies, ``(num_envs, ...)``);
+        after an autoreset it is the new episode's start, like the returned observation."""
+        return self.task.state()
 
     def compute_reward(self, achieved_goal, desired_goal, info):
         """HER-style reward of the task (vectorized over leading dims)."""
