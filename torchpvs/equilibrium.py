@@ -146,8 +146,9 @@ class Equilibrium:
                        diff: dict | None = None, plan=None, resolve=None,
                        resolve_all=None) -> Equilibrium:
         """Outputs of a converged solve ``res``. Re-solves are handed in by the solver, so that
-        this module never imports it: ``resolve(D, rows) -> forces (R, N)`` at insertions ``D``
-        for batch rows ``rows``, near this equilibrium (the one-sided forces at kinks), and
+        this module never imports it: ``resolve(D, rows) -> state`` (a solution dict with ``q``,
+        ``D``, ``alpha``, ``F``, ``M``, ``loaded``) at insertions ``D`` for batch rows ``rows``,
+        near this equilibrium (the one-sided forces at kinks), and
         ``resolve_all(options, initial) -> Equilibrium`` for the same inputs with other options
         (kept in ``_ctx["resolve"]`` for :mod:`torchpvs.jacobians`)."""
         q, lay, tab, H = res["q"], res["lay"], res["tab"], res["H"]
@@ -175,8 +176,7 @@ class Equilibrium:
             forces, torques = _paper_actuation(tubes, res)
             insert_side = forces.clone()
         elif opts.compute_forces:
-            forces, torques = actuation(tubes, res)
-            forces, insert_side, kink = _one_sided_forces(tubes, res, forces, resolve)
+            forces, torques, insert_side, kink = _forces(tubes, res, resolve)
         conv = res["converged"]
         conv_list = conv.tolist()
         reason = tuple("converged" if conv_list[b] else _failure_reason(res, opts, b)
@@ -446,15 +446,19 @@ def _coinciding_cuts(L, Ls, D, curved, tol: float) -> torch.Tensor:
     return (close & both & other).flatten(2).any(-1)
 
 
-def _one_sided_forces(tubes, res, forces, resolve, delta: float = 1e-7, tol: float = 1e-9):
-    """Where ``U*(D_j)`` has a kink — material of tube ``j`` changing kind exactly at the
-    orifice: its base (``D_j = 0``: the guide torsion appears), its straight-to-curved transition
-    (``D_j = Ls_j``: curvature enters the guide) or its end (``D_j = L_j``) — the derivative
-    differs for insertion and retraction. Each side is computed at an equilibrium ``delta`` away
-    on that side (where ``U*`` is smooth), warm-started at the same order and Magnus count
-    (usually one Newton step), both sides in one batched ``resolve``; the error is ``O(delta)``.
+def _forces(tubes, res, resolve, delta: float = 1e-7, tol: float = 1e-9):
+    """Actuation forces and torques ``(B, N)`` at the equilibrium ``res`` (:func:`actuation`),
+    with one-sided insertion forces where ``U*(D_j)`` has a kink: material of tube ``j`` changing
+    kind exactly at the orifice -- its base (``D_j = 0``: the guide torsion appears), its
+    straight-to-curved transition (``D_j = Ls_j``: curvature enters the guide) or its end
+    (``D_j = L_j``) -- or a cut that moves with ``D_j`` meeting another tube's. There the
+    derivative differs for insertion and retraction. Each side is taken at an equilibrium
+    ``delta`` away on that side (where ``U*`` is smooth), from ``resolve`` (usually no solve, at
+    most one Newton step); the error is ``O(delta)``. The equilibrium and every kink side go
+    through ONE envelope-theorem evaluation (one layout, one reverse pass).
 
-    Returns ``(retraction side, insertion side, kink mask)``, all ``(B, N)``.
+    Returns ``(forces = retraction side, torques, insertion side, kink mask)``, all ``(B, N)``;
+    the insertion side is NaN where the carriage cannot move in (blocked by the next base).
     """
     D = res["D"]
     B, N = D.shape
@@ -464,13 +468,14 @@ def _one_sided_forces(tubes, res, forces, resolve, delta: float = 1e-7, tol: flo
     exposed = L - D > tol
     kink = ((D <= tol) & exposed) | (((Ls - D).abs() <= tol) & curved & (L > Ls)) \
         | ((L - D).abs() <= tol) | _coinciding_cuts(L, Ls, D, curved, tol)
-    insertion = forces.clone()
     prev = torch.cat([torch.zeros_like(D[:, :1]), D[:, :-1]], -1)
     blocked = D - delta < prev
-    insertion[blocked] = float("nan")
-    if not bool(kink.any()):
-        return forces, insertion, kink
     idx = kink.nonzero()
+    if idx.numel() == 0:
+        forces, torques = actuation(tubes, res)
+        insertion = forces.clone()
+        insertion[blocked] = float("nan")
+        return forces, torques, insertion, kink
     rows_b, rows_j = idx[:, 0], idx[:, 1]
     can_insert = ~blocked[rows_b, rows_j]
     # Rows: every kink on the retraction side, then those that can move on the insertion side.
@@ -481,10 +486,15 @@ def _one_sided_forces(tubes, res, forces, resolve, delta: float = 1e-7, tol: flo
     Dn[torch.arange(len(sel)), sj] += delta * sign.to(D.dtype)
     # Moving a base past the next one's would break the ordering: move them together.
     Dn = torch.cummax(Dn, -1).values
-    vals = resolve(Dn, sel)
-    vals = vals[torch.arange(len(sel)), sj]
+    side = resolve(Dn, sel)
+    both = dict(res, **{k: torch.cat([res[k], side[k]]) for k in
+                        ("q", "D", "alpha", "F", "M", "loaded")})
+    allf, allt = actuation(tubes, both)
+    forces, torques, vals = allf[:B], allt[:B], allf[B:][torch.arange(len(sel)), sj]
+    insertion = forces.clone()
+    insertion[blocked] = float("nan")
     n_r = len(rows_b)
     retract = forces.clone()
     retract[rows_b, rows_j] = vals[:n_r]
     insertion[sel[n_r:], sj[n_r:]] = vals[n_r:]
-    return retract, insertion, kink
+    return retract, torques, insertion, kink

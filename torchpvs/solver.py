@@ -13,7 +13,7 @@ from dataclasses import dataclass, replace
 
 import torch
 
-from .equilibrium import Equilibrium, actuation
+from .equilibrium import Equilibrium
 from .implicit import differentiable_outputs
 from .mechanics import tip_pose
 from .newton import KERNELS, Problem, chunked, derivatives, scaled_residual, subset
@@ -331,8 +331,7 @@ def _solve(scene: Scene, tubes: TubeTensors, D, A, F, M, opts: SolverOptions, in
                            moved)
             q1 = q1.clone()
             q1[moved] = _newton_step(q1[moved], prob)[0]
-        r = dict(res, q=q1, D=Dn, alpha=An, F=Fn, M=Mn, loaded=loaded)
-        return actuation(tubes, r)[0]
+        return {"q": q1, "D": Dn, "alpha": An, "F": Fn, "M": Mn, "loaded": loaded}
 
     def resolve_all(options, initial_):
         return _solve(scene, tubes, D, A, F, M, options, initial_, plan)
