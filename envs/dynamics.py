@@ -18,8 +18,22 @@ Each substep of length ``h`` is linearly implicit in the actuator stiffness ``K 
 At rest ``tau = g(x)`` holds exactly. The number of substeps per control period is chosen from
 the stiffness (``h * lambda_max(diag(b)^-1/2 K+ diag(b)^-1/2) <= stiffness_ratio``) and from a cap
 on the motion per substep; every substep is ONE batched solver call warm-started from the last.
-Carriages stop inelastically at their stroke limits (:meth:`envs.robots.Robot.project`): the
-position is projected and the velocity into the stop zeroed.
+Contact (two-sided, inelastic): the carriages stop at their stroke ends and against each
+other at the nesting stop (``D_j = D_{j-1}``) and the tip-order stop
+(``L_j - D_j = L_{j-1} - D_{j-1}``), the set ``G D <= c`` of :meth:`envs.robots.Robot.constraints`.
+Each substep's unconstrained solution ``x_u`` is replaced by the feasible point nearest to it in
+the step's own metric ``A`` (``diag(b) + h K+``, or ``diag(m) + h diag(b) + h^2 K+``):
+
+    x_new = argmin_{G D <= c} (x - x_u)^T A (x - x_u)   (a small QP, Goldfarb-Idnani),
+
+which is the implicit step with contact forces ``f_c = -G^T lambda / h`` (``/ h^2`` second
+order), ``lambda >= 0``, complementary to the gaps. So carriages in contact move together under
+their NET force (overdamped: pair velocity = summed force / summed damping; second order: with
+the summed masses) and separate as soon as the contact force would have to pull; a stop reached
+in a substep absorbs the momentum into it (inelastic). ``step_force`` reports the contact
+forces averaged over the control period. Joint control (position-controlled carriages) uses the
+same projection in the Euclidean metric: the feasible actuation nearest the command, no carriage
+taking precedence.
 
 Energy: in the overdamped model every substep must lower ``phi(x) = U*(x) - tau . x`` (the
 flow is a gradient flow of ``phi``) by Armijo's sufficient-decrease test; the linearly implicit
@@ -103,6 +117,68 @@ class CarriageModel:
                              f"got {self.max_substeps!r}")
 
 
+def project_in_metric(xu: np.ndarray, A: np.ndarray, G: np.ndarray, c: np.ndarray,
+                      tol: float = 1e-12, max_iter: int = 100):
+    """``argmin_{G x <= c} 0.5 (x - xu)^T A (x - xu)`` for one point ``xu (n,)`` and SPD ``A``,
+    by Goldfarb and Idnani's dual active-set method (Math. Programming 27, 1983): start at
+    ``xu``, add the most violated constraint, drop constraints whose multiplier would turn
+    negative; the active rows stay linearly independent, so degenerate corners (a carriage at
+    its stroke end and at its neighbour at once) are handled.
+
+    Returns ``(x, lam, ok)``: the projection, the multipliers ``lam (m,) >= 0`` with
+    ``A (x - xu) = -G^T lam`` (KKT) and whether it converged (``False``: infeasible set or
+    ``max_iter`` reached; ``x`` is then ``xu``)."""
+    Ainv = np.linalg.inv(A)
+    x = np.array(xu, dtype=np.float64, copy=True)
+    active: list[int] = []
+    u = np.zeros(0)
+    for _ in range(max_iter):
+        slack = c - G @ x
+        slack[active] = np.inf
+        p = int(np.argmin(slack))
+        if slack[p] >= -tol:
+            lam = np.zeros(len(c))
+            lam[active] = u
+            return x, lam, True
+        n_p = -G[p]                      # constraint n_p . x >= -c_p, violated
+        up = np.append(u, 0.0)
+        added = False
+        for _ in range(max_iter):
+            if active:
+                Nw = -G[active].T                                  # (n, q)
+                Nstar = np.linalg.solve(Nw.T @ Ainv @ Nw, Nw.T @ Ainv)
+                z = (Ainv - Ainv @ Nw @ Nstar) @ n_p              # primal step direction
+                r = Nstar @ n_p                                   # dual step direction
+            else:
+                z, r = Ainv @ n_p, np.zeros(0)
+            pos = r > 0
+            t1, k = np.inf, -1
+            if pos.any():
+                ratios = np.where(pos, up[:-1] / np.where(pos, r, 1.0), np.inf)
+                k = int(np.argmin(ratios))
+                t1 = float(ratios[k])
+            zn = float(z @ n_p)
+            scale = float(n_p @ Ainv @ n_p)
+            t2 = (G[p] @ x - c[p]) / zn if zn > 1e-12 * scale else np.inf
+            if not (np.isfinite(t1) or np.isfinite(t2)):
+                return np.array(xu, dtype=np.float64, copy=True), np.zeros(len(c)), False
+            t = min(t1, t2)
+            if np.isfinite(t2):
+                x = x + t * z
+            up[:-1] -= t * r
+            up[-1] += t
+            if t2 <= t1:
+                active.append(p)
+                u = up
+                added = True
+                break
+            del active[k]                 # its multiplier reached zero: the contact opens
+            up = np.delete(up, k)
+        if not added:
+            break
+    return np.array(xu, dtype=np.float64, copy=True), np.zeros(len(c)), False
+
+
 class RobotBatch:
     """State and stepping of ``B`` robots (numpy state, one batched torch solve per substep).
 
@@ -140,6 +216,9 @@ class RobotBatch:
         self.at_upper = np.zeros((batch_size, N), dtype=bool)
         self.q: torch.Tensor | None = None           # warm start, (B, nq)
         self.solves = 0                              # batched solver calls (for benchmarks)
+        G, self._c = robot.constraints()             # G D <= c on the insertions
+        self._G = np.concatenate([G, np.zeros_like(G)], -1)    # (m, 2N): no rotation limits
+        self.contact_fallbacks = 0                   # contact QPs that failed (clipped instead)
 
     # ------------------------------------------------------------------------------------------
     def _solve(self, x: np.ndarray, q0: torch.Tensor | None):
@@ -198,7 +277,9 @@ class RobotBatch:
         """Advance every robot one control period under commanded ``tau (B, 2N)`` [N, N·m].
 
         Returns per-robot flags ``solver_failure``, ``snapped`` (bool ``(B,)``), ``tip_jump``
-        [m] (largest per substep) and ``substeps``."""
+        [m] (largest per substep), ``substeps``, and the contact forces averaged over the
+        control period [N] (signs in :meth:`contact_forces`): ``stop_force (B, N)`` from the
+        stroke ends, ``contact_force (B, N-1)`` between neighbouring carriages."""
         tau = np.asarray(tau, dtype=np.float64)
         n = self.n_substeps(tau)
         h = self.model.control_period / n
@@ -236,11 +317,18 @@ class RobotBatch:
         dx = np.asarray(dx, dtype=np.float64)
         x0 = self.x.copy()
         period = self.model.control_period
-        return self._run(np.ones(self.B, dtype=int),
-                         lambda idx, frac: (x0[idx] + frac * dx[idx], frac * dx[idx] / period),
-                         stiffness=False)
+        eye = np.broadcast_to(np.eye(2 * self.N), (self.B, 2 * self.N, 2 * self.N))
+
+        def propose(idx, frac):
+            # position control: the feasible actuation nearest the command (Euclidean), no
+            # contact force reported (the carriages' position loops carry it)
+            x, _ = self._contact(x0[idx] + frac * dx[idx], eye[idx])
+            return x, (x - x0[idx]) / period, np.zeros((len(idx), len(self._c)))
+
+        return self._run(np.ones(self.B, dtype=int), propose, stiffness=False)
 
     def _run(self, n: np.ndarray, propose, stiffness: bool, accept=None):
+        self._impulse = np.zeros((self.B, len(self._c)))   # contact impulses this period
         failure = np.zeros(self.B, dtype=bool)
         snapped = np.zeros(self.B, dtype=bool)
         jump = np.zeros(self.B)
@@ -270,8 +358,41 @@ class RobotBatch:
         if stiffness:
             for eq, idx, rows in K_eq:
                 self.K[idx] = self._stiffness_of(eq, rows)
+        stop, pair = self.contact_forces(self._impulse / self.model.control_period)
         return {"solver_failure": failure, "snapped": snapped, "tip_jump": jump,
-                "substeps": n}
+                "substeps": n, "stop_force": stop, "contact_force": pair}
+
+    # -- contact --------------------------------------------------------------------------------
+    TOL = 1e-12  # [m] feasibility tolerance of the contact solve (positions are ~0.1 m)
+
+    def _contact(self, x_u: np.ndarray, A: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """The feasible points nearest to ``x_u (k, 2N)`` in the metrics ``A (k, 2N, 2N)``
+        (:func:`project_in_metric`) and the multipliers ``lam (k, m)`` of the rows of
+        :meth:`Robot.constraints`. Only robots whose ``x_u`` leaves the feasible set are
+        solved; one whose solve fails is clipped outermost-first (counted in
+        ``contact_fallbacks``, with no contact force)."""
+        x = x_u.copy()
+        lam = np.zeros((len(x_u), len(self._c)))
+        out = (x_u @ self._G.T - self._c > self.TOL).any(-1)
+        for i in np.flatnonzero(out):
+            xi, li, ok = project_in_metric(x_u[i], A[i], self._G, self._c, self.TOL)
+            if not ok:
+                self.contact_fallbacks += 1
+                xi = x_u[i].copy()
+                xi[:self.N] = self.robot.project(xi[None, :self.N])[0][0]
+            x[i], lam[i] = xi, li
+        return x, lam
+
+    def contact_forces(self, lam: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Split the multipliers (or forces) of the constraint rows into ``(stop (k, N),
+        pair (k, N-1))``: the force of the stroke ends on each insertion carriage along
+        ``+D`` (``> 0`` at the lower end, ``< 0`` at the upper end) and the force of carriage
+        ``j-1`` on carriage ``j`` along ``+D_j`` (``> 0`` at the nesting stop, the outer
+        carriage pushing the inner one back; ``< 0`` at the tip-order stop)."""
+        N = self.N
+        stop = lam[:, 0:2 * N:2] - lam[:, 1:2 * N:2]
+        pair = lam[:, 2 * N::2] - lam[:, 2 * N + 1::2]
+        return stop, pair
 
     def _implicit_step(self, tau, h, idx):
         K, x, v, g = self.K[idx], self.x[idx], self.v[idx], self.g[idx]
@@ -281,12 +402,16 @@ class RobotBatch:
         if self.model.kind == "overdamped":
             A = self.damping * I + h[..., None] * K
             dx = np.linalg.solve(A, (h * f)[..., None])[..., 0]
-            v_new = dx / h
+            per_force = h                  # A dx = h (f + f_c)
         else:
             A = (self.mass + h * self.damping)[..., None] * I + (h * h)[..., None] * K
             v_new = np.linalg.solve(A, (self.mass * v + h * f)[..., None])[..., 0]
             dx = h * v_new
-        return x + dx, v_new
+            per_force = h * h              # A dx = h (m v + h (f + f_c))
+        # both are quadratic programs in the new position with the metric A: the contact
+        # solve adds the contact impulse -G^T lam, i.e. the force -G^T lam / per_force
+        x_new, lam = self._contact(x + dx, A)
+        return x_new, (x_new - x) / h, lam / per_force * h     # contact impulse [N·s] per row
 
     def _advance(self, propose, skip, accept=None):
         """One substep for the robots not in ``skip``: propose, project, solve; robots whose
@@ -305,22 +430,20 @@ class RobotBatch:
         for attempt in range(self.model.max_retries + 1):
             if len(todo) == 0:
                 break
-            x_try, v = propose(todo, frac)
-            D, lo, hi = self.robot.project(x_try[:, :self.N])
+            x_try, v, impulse = propose(todo, frac)
+            # the proposal is feasible (contact solve); this only puts round-off onto the
+            # limits and reads which are active
+            D, lo, hi = self.robot.project(x_try[:, :self.N], tol=self.TOL)
             x = np.concatenate([D, x_try[:, self.N:]], -1)
             v = v.copy()
             if attempt == 0 and accept is not None:
                 same = (self._parked[todo] & (self._park_x[todo] == self.x[todo]).all(-1)
                         & (self._park_try[todo] == x).all(-1))
                 self.v[todo[same]] = 0.0
-                todo, x, v, lo, hi = (a[~same] for a in (todo, x, v, lo, hi))
+                todo, x, v, lo, hi, impulse = (a[~same] for a in (todo, x, v, lo, hi, impulse))
                 first[todo] = x
                 if len(todo) == 0:
                     break
-            # inelastic stops: no velocity into an active limit
-            vD = v[:, :self.N]
-            vD[lo & (vD < 0)] = 0.0
-            vD[hi & (vD > 0)] = 0.0
             eq = self._solve(x, self.q[torch.as_tensor(todo)])
             g, tip, margin, twist, energy, converged = self._unpack(eq)
             ok = converged.copy()
@@ -334,6 +457,7 @@ class RobotBatch:
             self.at_lower[idx], self.at_upper[idx] = lo[good], hi[good]
             self.q[torch.as_tensor(idx)] = eq.q.detach()[torch.as_tensor(good)]
             self._parked[idx] = False
+            self._impulse[idx] += impulse[good]
             if attempt == 0:
                 committed = (eq, idx, good)
             failed = ~converged[~ok]

@@ -41,7 +41,11 @@ class CTRReachEnv(gym.Env):
     ``info`` of every step holds ``is_success``, ``distance`` [m], ``snapped``,
     ``solver_failure``, ``tip_jump`` [m], ``substeps``, ``tau`` (the applied forces/torques
     [N, N·m]), ``effort`` [N²s], ``saturated`` (fraction of saturated action components),
-    ``tip_speed`` [m/s] and ``at_limit``.
+    ``tip_speed`` [m/s], ``at_limit``, and the contact forces averaged over the step [N]:
+    ``contact_force (N-1,)`` the force of carriage ``j-1`` on carriage ``j`` along ``+D_j``
+    (``> 0`` at the nesting stop ``D_j = D_{j-1}``, ``< 0`` at the tip-order stop, ``0`` apart)
+    and ``stop_force (N,)`` the force of the stroke ends on each insertion carriage along
+    ``+D`` (``> 0`` at the lower end). Both are zero under joint control.
     """
 
     metadata = {"render_modes": ["rgb_array", "human"], "render_fps": 10}

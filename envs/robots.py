@@ -100,9 +100,31 @@ class Robot:
             hi = np.minimum(hi, D_prev + (L[j] - L[j - 1]))    # tips ordered
         return lo, np.maximum(lo, hi)
 
-    def project(self, D: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    def constraints(self) -> tuple[np.ndarray, np.ndarray]:
+        """The feasible set of insertions as ``G D <= c`` (``G (4N - 2, N)``, ``c`` [m]), rows
+        in this order: for each carriage ``j`` its lower then upper stroke end
+        (``-D_j <= -insertion_min_j``, ``D_j <= min(insertion_max_j, L_j - min_exposed)``);
+        then for each pair ``(j-1, j)`` the nesting stop ``D_{j-1} - D_j <= 0`` and the
+        tip-order stop ``D_j - D_{j-1} <= L_j - L_{j-1}`` (the rules of :meth:`bounds`)."""
+        N, L = self.n_tubes, self.lengths
+        rows, c = [], []
+        for j in range(N):
+            e = np.zeros(N)
+            e[j] = 1.0
+            rows += [-e, e]
+            c += [-self.insertion_min[j], min(self.insertion_max[j], L[j] - self.min_exposed)]
+        for j in range(1, N):
+            e = np.zeros(N)
+            e[j - 1], e[j] = 1.0, -1.0
+            rows += [e, -e]
+            c += [0.0, L[j] - L[j - 1]]
+        return np.array(rows).reshape(len(rows), N), np.array(c)
+
+    def project(self, D: np.ndarray, tol: float = 0.0
+                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
         """Project insertions ``(B, N)`` onto the feasible set, outermost tube first (each
-        carriage stops against its stroke ends and against its neighbour).
+        carriage stops against its stroke ends and against its neighbour). Values within
+        ``tol`` [m] of a limit are put on it (a contact solve leaves round-off either side).
 
         Returns ``(D, at_lower, at_upper)``; the flags say which limit is active.
         """
@@ -112,9 +134,9 @@ class Robot:
         prev = np.zeros(D.shape[0])
         for j in range(self.n_tubes):
             lo, hi = self.bounds(prev, j)
-            lower[:, j] = D[:, j] <= lo
-            upper[:, j] = D[:, j] >= hi
-            D[:, j] = np.clip(D[:, j], lo, hi)
+            lower[:, j] = D[:, j] <= lo + tol
+            upper[:, j] = D[:, j] >= hi - tol
+            D[:, j] = np.where(lower[:, j], lo, np.where(upper[:, j], hi, D[:, j]))
             prev = D[:, j]
         return D, lower, upper
 

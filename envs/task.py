@@ -345,6 +345,8 @@ class ReachBatch:
             "tip_speed": np.linalg.norm(self.robots.tip - tip0, axis=-1)
             / self.carriage.control_period,
             "at_limit": self.robots.at_lower.any(-1) | self.robots.at_upper.any(-1),
+            "contact_force": flags["contact_force"],
+            "stop_force": flags["stop_force"],
         }
         terminated = snap_term & ~failure
         truncated = failure
