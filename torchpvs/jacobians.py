@@ -25,8 +25,8 @@ from dataclasses import dataclass
 import torch
 
 from .implicit import differentiable_outputs
-from .mechanics import _skew_vee
-from .sections import TubeTensors
+from .mechanics import _skew_vee, potential
+from .sections import TubeTensors, build_layout
 
 __all__ = ["ControlJacobians", "actuator_stiffness", "control_jacobians"]
 
@@ -57,24 +57,69 @@ def _rows(outputs: torch.Tensor, inputs: tuple[torch.Tensor, ...]) -> list[torch
     return [torch.stack(c, 1) for c in cols]
 
 
+def _replicated(eq, m: int):
+    """The equilibrium's inputs and implicit context with every element repeated ``m`` times
+    (rows ``b * m + i``), sharing the adjoint factorization (computed once, then indexed).
+
+    Jacobian rows by ONE reverse pass: replica ``i`` of element ``b`` back-propagates only its
+    output ``i`` (elements are independent), instead of ``m`` reverse passes over the batch. The
+    flops are the same; the torch op count (what bounds small and medium batches on a CPU)
+    falls ``m``-fold."""
+    from .implicit import _adjoint_factor
+
+    ctx = eq._ctx
+    info = ctx["implicit_info"]
+    tubes: TubeTensors = ctx["tubes"]
+    q = eq.q.detach()
+    D, A, F, M = (ctx[k].detach() for k in ("D", "alpha", "F", "M"))
+    if info.get("_adjoint") is None:
+        info["_adjoint"] = _adjoint_factor(q, info, D, A, F, M, tubes.EI, tubes.GJ,
+                                           tubes.length, tubes.straight, tubes.coef)
+    idx = torch.arange(q.shape[0], device=q.device).repeat_interleave(m)
+    lu, piv, scale = info["_adjoint"]
+    rep = {k: v for k, v in info.items() if k != "H"}
+    rep.update(qmask=info["qmask"][idx], loaded=info["loaded"][idx],
+               _adjoint=(lu[idx], piv[idx], scale[idx]))
+    return q[idx], rep, tuple(t[idx] for t in (D, A, F, M)), tubes
+
+
 def actuator_stiffness(eq) -> torch.Tensor:
     """``K_x = dtau/dx`` ``(B, 2N, 2N)`` [N/m, N, N·m] at an :class:`~torchpvs.Equilibrium` —
     the first block of :func:`control_jacobians` alone, without its re-solve for load
-    coordinates (which only the tip compliance needs): ``2N`` reverse passes through the implicit
-    backward. The cheap path for time stepping (torchpvs environments)."""
-    ctx = eq._ctx
-    info = ctx["implicit_info"]
-    D = ctx["D"].detach().clone().requires_grad_(True)
-    A = ctx["alpha"].detach().clone().requires_grad_(True)
+    coordinates (which only the tip compliance needs). The cheap path for time stepping
+    (torchpvs environments).
+
+    Without a tip moment, as the Schur complement ``U_xx - U_xq H^-1 U_qx``: the mixed and
+    actuator blocks of the energy's Hessian by one double-backward pass over the batch repeated
+    ``2N`` times (:func:`_replicated`), and ``H^-1 U_qx`` from the equilibrium's adjoint
+    factorization (shared with the implicit backward). Under a tip moment (non-conservative)
+    through the implicit backward, in one reverse pass over the repeated batch."""
+    B, N = eq._ctx["D"].shape
+    m = 2 * N
+    q, info, (D, A, F, M), tubes = _replicated(eq, m)
+    D.requires_grad_(True)
+    A.requires_grad_(True)
+    pick = torch.eye(m, dtype=q.dtype, device=q.device).repeat(B, 1)        # (B m, 2N)
+    if info["has_moment"]:
+        with torch.enable_grad():
+            out = differentiable_outputs(q, info, D, A, F, M, tubes)
+            tau = torch.cat([out["forces"], out["torques"]], -1)
+            KD, KA = torch.autograd.grad((tau * pick).sum(), (D, A))
+        return torch.cat([KD, KA], -1).reshape(B, m, m)
+    q = q.requires_grad_(True)
     with torch.enable_grad():
-        out = differentiable_outputs(eq.q.detach(), info, D, A, ctx["F"], ctx["M"],
-                                     ctx["tubes"])
-        tau = torch.cat([out["forces"], out["torques"]], -1)
-        KD, KA = _rows(tau, (D, A))
-    K = torch.cat([KD, KA], -1).detach()
-    if not info["has_moment"]:
-        K = 0.5 * (K + K.transpose(1, 2))
-    return K
+        lay = build_layout(tubes, D, A, F, M, info["loaded"], info["disc"])
+        U = potential(q, lay, info["tab"], None, info["with_load"])
+        tau = torch.cat(torch.autograd.grad(U.sum(), (D, A), create_graph=True), -1)
+        Uxq, UxD, UxA = torch.autograd.grad((tau * pick).sum(), (q, D, A))
+    qmask = info["qmask"].reshape(B, m, -1)[:, 0]                          # (B, nq)
+    lu, piv, scale = info["_adjoint"]
+    lu, piv, s = lu[::m], piv[::m], scale[::m].sqrt()
+    Uqx = (Uxq.reshape(B, m, -1) * qmask[:, None]).transpose(1, 2)          # (B, nq, 2N)
+    # The factors are of the transposed scaled tangent (adjoint system): solve its transpose.
+    Z = torch.linalg.lu_solve(lu, piv, Uqx / s[..., None], adjoint=True) / s[..., None]
+    K = torch.cat([UxD, UxA], -1).reshape(B, m, m) - Uqx.transpose(1, 2) @ (Z * qmask[..., None])
+    return 0.5 * (K + K.transpose(1, 2))
 
 
 def control_jacobians(eq, *, rank_tol: float = 1e-9) -> ControlJacobians:
