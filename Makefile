@@ -10,7 +10,7 @@ STAMP := $(VENV)/.installed
 $(STAMP): pyproject.toml constraints.txt
 	test -x $(BIN)/python || $(PY) -m venv $(VENV)
 	$(BIN)/python -m pip install -q --upgrade pip
-	$(BIN)/python -m pip install -q -c constraints.txt -e ".[rl,dev]"
+	$(BIN)/python -m pip install -q -c constraints.txt -e ".[rl,zoo,dev]"
 	touch $(STAMP)
 
 venv: $(STAMP)
