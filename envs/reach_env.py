@@ -16,7 +16,7 @@ from torchpvs import Scene
 
 from .dynamics import CarriageModel
 from .robots import Robot, make_robot
-from .task import ReachBatch, ReachConfig, RobotState, compute_reward
+from .task import ReachBatch, ReachConfig, RobotState, her_reward
 
 __all__ = ["CTRReachEnv"]
 
@@ -95,10 +95,9 @@ class CTRReachEnv(gym.Env):
 
     def compute_reward(self, achieved_goal, desired_goal, info) -> np.ndarray | float:
         """Vectorized over leading axes (SB3's HerReplayBuffer relabelling): depends on the
-        goals, the current tolerance and, where ``info`` carries it, the snap flag."""
-        snapped = _info_field(info, "snap_terminated", np.shape(achieved_goal)[:-1])
-        r = compute_reward(achieved_goal, desired_goal, self.task.tolerance, self.config.reward,
-                           self.config.dense_scale, snapped, self.config.snap_penalty)
+        goals (positions and the achieved snap flag, see :mod:`envs.task`), the current
+        tolerance and, where ``info`` carries it, ``snap_terminated``."""
+        r = her_reward(self.task, achieved_goal, desired_goal, info)
         return r if r.ndim else float(r)
 
     def state(self) -> RobotState:
@@ -146,14 +145,3 @@ class CTRReachEnv(gym.Env):
         """Current ``g = dU*/dx`` ``(2N,)`` [N, N·m]."""
         return self.task.robots.g[0].copy()
 
-
-def _info_field(info, key: str, shape) -> np.ndarray | None:
-    """``info[key]`` from a dict, or from a list/array of dicts (HER), else ``None``."""
-    if info is None:
-        return None
-    if isinstance(info, dict):
-        return np.asarray(info[key]) if key in info else None
-    items = list(np.asarray(info, dtype=object).reshape(-1))
-    if not items or not all(isinstance(i, dict) and key in i for i in items):
-        return None
-    return np.array([bool(i[key]) for i in items]).reshape(shape)

@@ -22,8 +22,16 @@ stability margin      1      ``tanh(lambda_min / margin_scale)``
 at limit              2N     lower and upper stroke-limit flags of each insertion carriage
 ====================  =====  ==================================================================
 
-``achieved_goal`` is the tip position and ``desired_goal`` the goal [m]. The tolerance is not in
-the observation: HER recomputes rewards with the current tolerance (set_tolerance).
+Goals (float32, ``(4,)``): ``achieved_goal = (tip [m], snap flag)``, ``desired_goal = (goal [m],
+0)``. The snap flag is 1 in the observation that follows a penalized snap (``snap_terminated``)
+and 0 otherwise; :func:`compute_reward` adds ``snap_penalty`` where the ACHIEVED flag is 1 and
+measures the distance on the first three entries only (a relabelled desired goal may carry a 1:
+it is ignored). The flag rides in ``achieved_goal`` because SB3's ``HerReplayBuffer`` keeps
+the goals of every stored transition but, by default (``copy_info_dict=False``), not its
+``info``: with the flag in ``info`` a snap step relabelled with the goal it reached read reward
+0 and done, a rewarded escape (issue 13). Measured sampling cost of the alternatives
+(``benchmarks/her_snap.py``) in docs/environments.md. The tolerance is not in the observation:
+HER recomputes rewards with the current tolerance (set_tolerance).
 """
 
 from __future__ import annotations
@@ -37,7 +45,8 @@ from gymnasium import spaces
 from .dynamics import CarriageModel, RobotBatch
 from .robots import Robot, solve_batch
 
-__all__ = ["ReachConfig", "ReachBatch", "RobotState", "OBS_BOUND", "compute_reward"]
+__all__ = ["ReachConfig", "ReachBatch", "RobotState", "OBS_BOUND", "compute_reward",
+           "her_reward"]
 
 OBS_BOUND = 10.0
 
@@ -145,14 +154,43 @@ def _real(v) -> bool:
 
 def compute_reward(achieved_goal, desired_goal, tolerance: float, kind: str,
                    dense_scale: float, snapped=None, snap_penalty: float = 0.0) -> np.ndarray:
-    """Vectorized reward over the last axis (``(..., 3)`` goals) -> ``(...,)`` float32."""
-    d = np.linalg.norm(np.asarray(achieved_goal, np.float64)
-                       - np.asarray(desired_goal, np.float64), axis=-1)
+    """Vectorized reward over the last axis -> ``(...,)`` float32.
+
+    Goals are ``(..., 3)`` positions [m] or the environments' ``(..., 4)`` goals whose 4th
+    entry is the snap flag: the distance uses the positions, the penalty is added where the
+    achieved flag is set or ``snapped`` (e.g. from ``info``) is true."""
+    ag = np.asarray(achieved_goal, np.float64)
+    dg = np.asarray(desired_goal, np.float64)
+    d = np.linalg.norm(ag[..., :3] - dg[..., :3], axis=-1)
     inside = d <= tolerance
     r = -(~inside).astype(np.float64) if kind == "sparse" else -d / dense_scale + inside
+    flag = ag[..., 3] > 0.5 if ag.shape[-1] == 4 else np.zeros(d.shape, dtype=bool)
     if snapped is not None:
-        r = r + snap_penalty * np.asarray(snapped, dtype=np.float64)
+        flag = flag | np.asarray(snapped, dtype=bool)
+    r = r + snap_penalty * flag
     return r.astype(np.float32)
+
+
+def info_field(info, key: str, shape) -> np.ndarray | None:
+    """``info[key]`` from a dict, or from a list/array of dicts (HER with
+    ``copy_info_dict=True``), else ``None``."""
+    if info is None:
+        return None
+    if isinstance(info, dict):
+        return np.asarray(info[key]) if key in info else None
+    items = list(np.asarray(info, dtype=object).reshape(-1))
+    if not items or not all(isinstance(i, dict) and key in i for i in items):
+        return None
+    return np.array([bool(i[key]) for i in items]).reshape(shape)
+
+
+def her_reward(task: ReachBatch, achieved_goal, desired_goal, info) -> np.ndarray:
+    """``compute_reward`` of every environment face (one function, so they cannot differ):
+    the goals' snap flag, or ``info["snap_terminated"]`` where HER passes infos."""
+    snapped = info_field(info, "snap_terminated", np.shape(achieved_goal)[:-1])
+    c = task.config
+    return compute_reward(achieved_goal, desired_goal, task.tolerance, c.reward, c.dense_scale,
+                          snapped, c.snap_penalty)
 
 
 class ReachBatch:
@@ -182,14 +220,18 @@ class ReachBatch:
         self.goal = np.zeros((batch_size, 3))
         self.goal_actuation = np.zeros((batch_size, 2 * robot.n_tubes))  # one preimage of goal
         self.prev_action = np.zeros((batch_size, 2 * self.N))
+        self.snap_flag = np.zeros(batch_size)   # 1 after a penalized snap (achieved_goal[3])
         self.rngs = [np.random.default_rng(s) for s in np.random.SeedSequence().spawn(batch_size)]
         N = self.N
         self.obs_size = 2 * N + N + 2 * N + 2 * N + (2 * N if carriage.kind == "second_order"
                                                      else 0) + 3 + 3 + 1 + 2 * N
+        # goals: the tip within 2 x reach of the orifice, then the snap flag in [0, 1]
+        goal_low = np.array([-2 * robot.reach] * 3 + [0.0], np.float32)
+        goal_high = np.array([2 * robot.reach] * 3 + [1.0], np.float32)
         self.observation_space = spaces.Dict({
             "observation": spaces.Box(-OBS_BOUND, OBS_BOUND, (self.obs_size,), np.float32),
-            "achieved_goal": spaces.Box(-2 * robot.reach, 2 * robot.reach, (3,), np.float32),
-            "desired_goal": spaces.Box(-2 * robot.reach, 2 * robot.reach, (3,), np.float32),
+            "achieved_goal": spaces.Box(goal_low, goal_high, (4,), np.float32),
+            "desired_goal": spaces.Box(goal_low, goal_high, (4,), np.float32),
         })
         self.action_space = spaces.Box(-1.0, 1.0, (2 * N,), np.float32)
         self.speeds = np.concatenate([np.full(N, carriage.insertion_speed),
@@ -275,6 +317,7 @@ class ReachBatch:
         self.goal[idx] = goal
         self.goal_actuation[idx] = goal_x
         self.prev_action[idx] = 0.0
+        self.snap_flag[idx] = 0.0
 
     def travel_steps(self, idx=None) -> np.ndarray:
         """Control periods the carriages need, at their full-scale speeds, to move from the
@@ -329,6 +372,7 @@ class ReachBatch:
         failure = flags["solver_failure"]
         d = np.linalg.norm(self.robots.tip - self.goal, axis=-1)
         snap_term = snapped & (self.config.snap_mode == "terminate")
+        self.snap_flag = snap_term.astype(np.float64)
         reward = compute_reward(self.robots.tip, self.goal, self.tolerance, self.config.reward,
                                 self.config.dense_scale, snap_term, self.config.snap_penalty)
         infos = {
@@ -367,8 +411,10 @@ class ReachBatch:
                   rb.at_lower.astype(np.float64), rb.at_upper.astype(np.float64)]
         obs = np.clip(np.nan_to_num(np.concatenate(parts, -1), nan=0.0), -OBS_BOUND, OBS_BOUND)
         return {"observation": obs.astype(np.float32),
-                "achieved_goal": rb.tip.astype(np.float32),
-                "desired_goal": self.goal.astype(np.float32)}
+                "achieved_goal": np.concatenate([rb.tip, self.snap_flag[:, None]],
+                                                -1).astype(np.float32),
+                "desired_goal": np.concatenate([self.goal, np.zeros((self.B, 1))],
+                                               -1).astype(np.float32)}
 
     def state(self) -> RobotState:
         """The robots' state as a :class:`RobotState` of copies (``(B, ...)`` arrays)."""

@@ -18,9 +18,8 @@ from stable_baselines3.common.vec_env.base_vec_env import VecEnv
 from torchpvs import Scene
 
 from .dynamics import CarriageModel
-from .reach_env import _info_field
 from .robots import Robot
-from .task import RobotState, compute_reward
+from .task import RobotState, her_reward
 from .vector import build_batch
 
 __all__ = ["CTRReachVecEnv"]
@@ -132,10 +131,7 @@ class _RobotProxy:
         object.__setattr__(self, "_i", i)
 
     def compute_reward(self, achieved_goal, desired_goal, info):
-        v = self._venv
-        snapped = _info_field(info, "snap_terminated", np.shape(achieved_goal)[:-1])
-        return compute_reward(achieved_goal, desired_goal, v.task.tolerance, v.config.reward,
-                              v.config.dense_scale, snapped, v.config.snap_penalty)
+        return her_reward(self._venv.task, achieved_goal, desired_goal, info)
 
     def set_tolerance(self, tolerance: float) -> None:
         self._venv.task.set_tolerance(tolerance)

@@ -27,7 +27,7 @@ from torchpvs import Scene
 
 from .dynamics import CarriageModel
 from .robots import Robot, make_robot
-from .task import ReachBatch, ReachConfig, RobotState
+from .task import ReachBatch, ReachConfig, RobotState, her_reward
 
 __all__ = ["CTRReachVectorEnv", "build_batch"]
 
@@ -120,13 +120,8 @@ class CTRReachVectorEnv(gym.vector.VectorEnv):
         return self.task.state()
 
     def compute_reward(self, achieved_goal, desired_goal, info):
-        """HER-style reward of the task (vectorized over leading dims)."""
-        from .reach_env import _info_field
-        from .task import compute_reward
-        snapped = _info_field(info, "snap_terminated", np.shape(achieved_goal)[:-1])
-        return compute_reward(achieved_goal, desired_goal, self.task.tolerance,
-                              self.config.reward, self.config.dense_scale, snapped,
-                              self.config.snap_penalty)
+        """HER-style reward of the task (vectorized over leading dims; as the single env)."""
+        return her_reward(self.task, achieved_goal, desired_goal, info)
 
     def render(self):
         if self.render_mode != "rgb_array":

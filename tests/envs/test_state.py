@@ -50,7 +50,7 @@ def test_state_has_documented_shapes_and_matches_an_independent_solve(robot):
         warm = solve_batch(env.robot, s.x, initial=s.q)
         np.testing.assert_allclose(warm.tip_position.numpy(), s.tip, atol=1e-8)
         obs = env.task.observations()
-        np.testing.assert_allclose(s.goal, obs["desired_goal"].reshape(B, 3), atol=1e-7)
+        np.testing.assert_allclose(s.goal, obs["desired_goal"].reshape(B, 4)[:, :3], atol=1e-7)
 
 
 def test_state_is_frozen_and_holds_copies():
