@@ -1,0 +1,140 @@
+"""Plan-then-servo controller (training/controllers.py): the safe rotation target, reaching an
+easy goal, replanning when the goal changes, never crossing +-180 deg relative rotation, and
+reading state from an SB3 vec env of single envs (as rl_zoo3 builds)."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+
+import envs
+from envs.robots import solve_batch
+from training.controllers import (
+    CONTROLLERS,
+    PlanThenServoController,
+    read_state,
+    safe_rotation_target,
+)
+
+TABLE = 512   # a smaller seeding table than the default keeps these tests fast
+
+
+@pytest.fixture(autouse=True)
+def _one_thread():
+    """Batches of one or two robots run faster on one torch thread (and 5-10x faster than on
+    two when the cores are shared)."""
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    yield
+    torch.set_num_threads(n)
+
+
+def _window(rel: np.ndarray) -> np.ndarray:
+    """Index of the 2 pi window ``((2k-1) pi, (2k+1) pi)`` holding each relative rotation."""
+    return np.floor((rel + math.pi) / (2 * math.pi))
+
+
+def test_safe_rotation_target_keeps_the_relative_rotation_in_its_window():
+    rng = np.random.default_rng(0)
+    alpha = rng.uniform(-7, 7, (500, 3))
+    goal = rng.uniform(-7, 7, (500, 3))
+    target = safe_rotation_target(alpha, goal)
+    # the same shape: equal modulo 2 pi, tube by tube
+    np.testing.assert_allclose(np.cos(target - goal), 1.0, atol=1e-12)
+    # the common rotation takes the short way
+    assert np.all(np.abs(target[:, 0] - alpha[:, 0]) <= math.pi + 1e-12)
+    # along the straight path no relative rotation leaves the window it starts in
+    for s in np.linspace(0, 1, 41):
+        a = alpha + s * (target - alpha)
+        rel = a[:, 1:] - a[:, :1]
+        np.testing.assert_array_equal(_window(rel), _window(alpha[:, 1:] - alpha[:, :1]))
+
+
+def _one_robot(x0, goal_x, steps=100, **kw):
+    """A one-robot batch started at rest at ``x0``, goal = the tip at ``goal_x``."""
+    venv = envs.CTRReachVecEnv(1, max_episode_steps=steps + 1)   # no autoreset in the test
+    venv.seed(0)
+    venv.reset()
+    venv.task.robots.set_state(np.array([0]), np.asarray([x0], float))
+    venv.task.goal[0] = solve_batch(venv.robot, np.asarray([goal_x], float)).tip_position[0]
+    return venv, PlanThenServoController(venv, table_size=TABLE, **kw)
+
+
+def _run(venv, ctrl, steps):
+    rel, obs = [], venv.task.observations()
+    for _ in range(steps):
+        obs, _, _, infos = venv.step(ctrl(obs))
+        x = read_state(venv).x[0]
+        rel.append(x[3] - x[2])
+        assert not infos[0]["snapped"]
+    return np.array(rel), infos[0]["distance"]
+
+
+def test_reaches_an_easy_goal_and_replans_when_the_goal_changes():
+    """Goal 10 mm of insertion and 20 deg away: within 1 mm in 40 steps, plan made once; then
+    a second goal set by hand is planned for (plans == 2) and reached too."""
+    x0 = [0.06, 0.15, 0.0, 0.5]
+    venv, ctrl = _one_robot(x0, [0.06, 0.14, 0.0, 0.85])
+    _, d = _run(venv, ctrl, 40)
+    assert d < 1e-3, d
+    assert ctrl.plans[0] == 1 and ctrl.solved[0]
+    goal_b = solve_batch(venv.robot, np.array([[0.05, 0.16, 0.3, 0.5]])).tip_position[0]
+    venv.task.goal[0] = goal_b
+    _, d = _run(venv, ctrl, 40)
+    assert ctrl.plans[0] == 2 and d < 1e-3, (ctrl.plans, d)
+
+
+def test_goal_across_180_deg_is_reached_without_crossing_it():
+    """Start at 190 deg relative rotation (the same shape as -170 deg), goal the tip at -150
+    deg: the IK's rotations, taken as they are, would sweep the relative rotation from 190 down
+    through 180 deg (the torsional snap); the controller must go up to 210 deg (= -150) instead,
+    never leaving the window (180, 540) deg, and reach the goal."""
+    x0 = [0.06, 0.2, 0.0, math.radians(190)]
+    venv, ctrl = _one_robot(x0, [0.06, 0.2, 0.0, math.radians(-150)], steps=40)
+    rel, d = _run(venv, ctrl, 40)
+    assert d < 1e-3, d
+    assert np.all(_window(rel) == 1), np.degrees(rel).round(1)
+
+
+def test_an_unreachable_goal_is_flagged_not_raised():
+    venv = envs.CTRReachVecEnv(2, max_episode_steps=5)
+    venv.seed(1)
+    obs = venv.reset()
+    venv.task.goal[1] = [0.0, 0.0, 1.0]               # a metre away: no stable solution
+    ctrl = PlanThenServoController(venv, table_size=TABLE, rounds=1, max_iter=10)
+    a = ctrl(obs)
+    assert a.shape == (2, 4) and np.all(np.abs(a) <= 1)
+    assert not ctrl.solved[1]
+
+
+def test_bad_arguments_name_the_field():
+    venv = envs.CTRReachVecEnv(1)
+    for kw, match in ((dict(time_constant=0), "time_constant"), (dict(path_speed=2.0),
+                      "path_speed"), (dict(rounds=0), "rounds"), (dict(neighbours=-1),
+                                                                  "neighbours")):
+        with pytest.raises(ValueError, match=match):
+            PlanThenServoController(venv, **kw)
+
+
+def test_reads_state_from_a_dummy_vec_env_of_single_envs():
+    """rl_zoo3 wraps single envs in a DummyVecEnv: the controller reads their state through
+    env_method and acts exactly as on the batched env with the same state."""
+    from stable_baselines3.common.vec_env import DummyVecEnv
+
+    dummy = DummyVecEnv([lambda: envs.CTRReachEnv() for _ in range(2)])
+    dummy.seed(5)
+    obs = dummy.reset()
+    st = read_state(dummy)
+    assert st.x.shape == (2, 4) and st.goal.shape == (2, 3)
+    batched = envs.CTRReachVecEnv(2)
+    batched.seed(0)
+    batched.reset()
+    batched.task.robots.set_state(np.arange(2), st.x)
+    batched.task.goal[:] = st.goal
+    a_dummy = PlanThenServoController(dummy, table_size=TABLE)(obs)
+    a_batch = PlanThenServoController(batched, table_size=TABLE)(obs)
+    np.testing.assert_allclose(a_dummy, a_batch, atol=1e-6)
+    assert set(CONTROLLERS) >= {"pts", "osc", "zero", "random"}
