@@ -25,8 +25,8 @@ import torch
 
 from .mechanics import _skew_vee, elastic_energy_maps, elastic_grad_hess, tip_pose
 
-__all__ = ["KERNELS", "NewtonResult", "Problem", "chunked", "derivatives", "merit", "newton",
-           "subset"]
+__all__ = ["KERNELS", "NewtonResult", "Problem", "active_index", "chunked", "compact",
+           "derivatives", "expand", "merit", "newton", "subset"]
 
 
 class NewtonResult(NamedTuple):
@@ -59,6 +59,29 @@ def subset(prob: Problem, idx: torch.Tensor, merit_only: bool = False) -> Proble
     maps = {k: (v if k in _SHARED else v[idx]) for k, v in prob.maps.items()
             if not (merit_only and k == "H_const")}
     return prob._replace(lay=lay, maps=maps)
+
+
+def active_index(qmask: torch.Tensor) -> torch.Tensor:
+    """``(B, nA)`` indices of each element's active coordinates first (``nA`` = the most active
+    coordinates in the batch), padded with distinct inactive ones. Gathering a Hessian with
+    :func:`compact` then gives ``nA x nA`` systems (the padding rows are identity rows, as the
+    Hessian is identity on inactive coordinates), so the factorizations and every dense pass
+    skip the padded coordinates (about half of them for the Fig. 3 robot)."""
+    n_active = int(qmask.sum(-1).amax()) if qmask.shape[0] else 0
+    order = torch.argsort((qmask == 0).to(torch.int8), dim=-1, stable=True)
+    return order[:, :max(n_active, 1)]
+
+
+def compact(H: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
+    """``H[b][act[b]][:, act[b]]``: ``(B, nq, nq) -> (B, nA, nA)``."""
+    B, nA = act.shape
+    rows = torch.gather(H, 1, act[:, :, None].expand(B, nA, H.shape[-1]))
+    return torch.gather(rows, 2, act[:, None, :].expand(B, nA, nA))
+
+
+def expand(v: torch.Tensor, act: torch.Tensor, nq: int) -> torch.Tensor:
+    """Inverse of the compaction for vectors: ``(B, nA) -> (B, nq)``, zero elsewhere."""
+    return torch.zeros(v.shape[0], nq, dtype=v.dtype, device=v.device).scatter_(1, act, v)
 
 
 def derivatives(q: torch.Tensor, prob: Problem):
@@ -171,6 +194,7 @@ def _newton(q: torch.Tensor, prob: Problem, L_char: torch.Tensor, *, method: str
     lam = torch.zeros(B, dtype=dtype, device=device)
     tested = torch.zeros(B, dtype=torch.bool, device=device)   # passed the saddle test
     escapes = 0
+    act = active_index(prob.lay["qmask"])
     for _ in range(max_iter + 1):
         qmask = sub.lay["qmask"]
         g, H = derivatives(q, sub)
@@ -181,7 +205,7 @@ def _newton(q: torch.Tensor, prob: Problem, L_char: torch.Tensor, *, method: str
         if method == "minimize" and escapes < 8:
             new = conv & ~tested
             if bool(new.any()):
-                q, left = _saddle_test(q, H, g, scale, new, sub, Lc)
+                q, left = _saddle_test(q, H, g, scale, new, sub, Lc, act)
                 tested = tested | (new & ~left)
                 conv = conv & ~left
                 if bool(left.any()):
@@ -205,11 +229,13 @@ def _newton(q: torch.Tensor, prob: Problem, L_char: torch.Tensor, *, method: str
             sub = subset(sub, keep)
             todo = torch.ones_like(lam, dtype=torch.bool)
             qmask = sub.lay["qmask"]
-        Hs = scale[:, :, None] * H * scale[:, None, :]
-        gs = scale * g
+            act = active_index(qmask)
+        sc = torch.gather(scale, 1, act)
+        Hs = sc[:, :, None] * compact(H, act) * sc[:, None, :]
+        gs = sc * torch.gather(g, 1, act)
         if method == "minimize":
-            step, lam = _damped_step(Hs, gs, lam, eye)
-            step = scale * step
+            step, lam = _damped_step(Hs, gs, lam, eye[:act.shape[1], :act.shape[1]])
+            step = expand(sc * step, act, nq)
             # Pure Newton phase: an undamped step (positive definite Hessian) that changes no
             # strain by more than 1e-3 rad over the robot's length is accepted without an energy
             # evaluation -- the quadratic model's relative error is O(1e-3) there, far inside
@@ -218,8 +244,9 @@ def _newton(q: torch.Tensor, prob: Problem, L_char: torch.Tensor, *, method: str
             q_new, accepted = _line_search(q, step, g, sub, todo, trust)
             lam = torch.where(accepted, lam * 0.25, torch.clamp(lam * 4 + 1e-6, max=1e6))
         else:
-            sol, _ = torch.linalg.solve_ex(Hs + 1e-14 * eye, -gs[..., None])
-            step = scale * sol[..., 0]
+            sol, _ = torch.linalg.solve_ex(Hs + 1e-14 * eye[:act.shape[1], :act.shape[1]],
+                                           -gs[..., None])
+            step = expand(sc * sol[..., 0], act, nq)
             # Cap the step at 1 rad of strain x length to stay in Newton's basin.
             cap = (step.abs().amax(-1) * Lc).clamp(min=1.0)
             q_new = q + step / cap[:, None]
@@ -234,23 +261,25 @@ def _newton(q: torch.Tensor, prob: Problem, L_char: torch.Tensor, *, method: str
     return NewtonResult(q_out, H_out, g_out, converged, residual, iterations)
 
 
-def _saddle_test(q, H, g, scale, new, prob: Problem, L_char):
+def _saddle_test(q, H, g, scale, new, prob: Problem, L_char, act):
     """Elements of ``new`` (just converged) whose undamped scaled Hessian is not positive
     definite and has a negative eigenvalue are moved off the saddle (:func:`_escape`). Returns
-    the coordinates and the mask of elements that left."""
+    the coordinates and the mask of elements that left. ``act``: :func:`active_index` rows."""
     sel = new.nonzero().flatten()
-    Hs = scale[sel, :, None] * H[sel] * scale[sel, None, :]
+    a = act[sel]
+    sc = torch.gather(scale[sel], 1, a)
+    Hs = sc[:, :, None] * compact(H[sel], a) * sc[:, None, :]
     _, info = torch.linalg.cholesky_ex(Hs)
     bad = info != 0
     left = torch.zeros_like(new)
     if not bool(bad.any()):
         return q, left
-    sel, Hs = sel[bad], Hs[bad]
+    sel, Hs, a, sc = sel[bad], Hs[bad], a[bad], sc[bad]
     ev, vec = torch.linalg.eigh(Hs)
     neg = ev[:, 0] < -1e-8
     if not bool(neg.any()):
         return q, left
-    sel, v = sel[neg], vec[neg][:, :, 0] * scale[sel[neg]]
+    sel, v = sel[neg], expand(vec[neg][:, :, 0] * sc[neg], a[neg], q.shape[-1])
     sub = subset(prob, sel, merit_only=True)
     v = v * sub.lay["qmask"]
     sign = torch.where((g[sel] * v).sum(-1) > 0, -1.0, 1.0).to(v.dtype)

@@ -16,7 +16,17 @@ import torch
 from .equilibrium import Equilibrium
 from .implicit import differentiable_outputs
 from .mechanics import tip_pose
-from .newton import KERNELS, Problem, chunked, derivatives, scaled_residual, subset
+from .newton import (
+    KERNELS,
+    Problem,
+    active_index,
+    chunked,
+    compact,
+    derivatives,
+    expand,
+    scaled_residual,
+    subset,
+)
 from .plan import MAGNUS_START, ORDER_START, Plan, plan_for, tube_tensors
 from .scene import Scene, load_scene
 from .sections import Discretization, TubeTensors, n_coordinates
@@ -395,15 +405,17 @@ def _one_newton_step(q, prob: Problem):
     g, H = derivatives(q, prob)
     H.diagonal(dim1=-2, dim2=-1).add_(1.0 - qmask)
     _, scale = scaled_residual(g, H, torch.ones_like(g[:, 0]))
-    Hs = scale[:, :, None] * H * scale[:, None, :]
-    rhs = -(scale * g)[..., None]
+    act = active_index(qmask)
+    sc = torch.gather(scale, 1, act)
+    Hs = sc[:, :, None] * compact(H, act) * sc[:, None, :]
+    rhs = -(sc * torch.gather(g, 1, act))[..., None]
     L, info = torch.linalg.cholesky_ex(Hs)
     sol = torch.cholesky_solve(rhs, L)
     indefinite = (info != 0).nonzero().flatten()
     if indefinite.numel():
         sol_lu, info_lu = torch.linalg.solve_ex(Hs[indefinite], rhs[indefinite])
         sol[indefinite], info[indefinite] = sol_lu, info_lu
-    q1 = q + scale * sol[..., 0] * qmask
+    q1 = q + expand(sc * sol[..., 0], act, q.shape[-1]) * qmask
     ok = (info == 0) & torch.isfinite(q1).all(-1)
     return torch.where(ok[:, None], q1, q), ok
 
