@@ -16,6 +16,7 @@ from .mechanics import (
     section_start_poses,
     tip_pose,
 )
+from .newton import active_index, compact
 from .sections import build_layout
 
 __all__ = ["Equilibrium", "actuation"]
@@ -34,14 +35,16 @@ def _failure_reason(res, opts, b: int) -> str:
 
 
 def _scaled_stiffness(H: torch.Tensor, qmask: torch.Tensor):
-    """``S H S`` with ``S = diag(|H_ii|^-1/2)`` on active coordinates (identity rows elsewhere)
-    and the active mask ``(B, nq)`` as float."""
+    """``S H S`` with ``S = diag(|H_ii|^-1/2)`` on the active coordinates, gathered to each
+    element's active coordinates (:func:`torchpvs.newton.compact`, ``(B, nA, nA)``; padding rows
+    are identity rows), and the gathered active mask ``(B, nA)`` as float."""
     d = H.diagonal(dim1=-2, dim2=-1).abs()
     active = qmask * (d > 0)
     S = torch.where(active > 0, d.clamp(min=torch.finfo(H.dtype).tiny) ** -0.5,
                     torch.ones_like(d))
-    Hs = S[:, :, None] * H * S[:, None, :]
-    return Hs, active
+    act = active_index(qmask)
+    Sc = torch.gather(S, 1, act)
+    return Sc[:, :, None] * compact(H, act) * Sc[:, None, :], torch.gather(active, 1, act)
 
 
 def _stability_threshold(dtype: torch.dtype) -> float:
