@@ -17,7 +17,10 @@ g / scale             2N     elastic actuator forces/torques ``dU*/dx`` over the
 previous action       2N     the last action (zeros after reset)
 xdot (normalized)     2N     carriage velocities / target speeds (``second_order`` only)
 tip / reach           3      tip position [m] over the robot's reach (base frame)
-(goal - tip) / reach  3      the error vector
+(goal - tip) / reach  3      the error vector over the whole workspace
+tanh(error / scale)   3      the error near the goal: ``tanh((goal - tip) / error_scale)``
+                             (default 10 mm: 1 mm reads 0.0997, 0.1 mm 0.01; far goals
+                             saturate at +-1, the entry above still gives their direction)
 stability margin      1      ``tanh(lambda_min / margin_scale)``
 at limit              2N     lower and upper stroke-limit flags of each insertion carriage
 ====================  =====  ==================================================================
@@ -71,6 +74,15 @@ class ReachConfig:
             never reaching the goal under the sparse reward with gamma 0.95).
         goal_min_distance: [m] goals are at least this far from the start tip (finite, >= 0;
             one that cannot be met raises, see :class:`ReachBatch`).
+        compensation: force control only. ``False`` (default): raw force actions,
+            ``tau = scale * a``: the carriages integrate any mismatch with the elastic load
+            ``g(x)`` (a policy must reproduce ``g`` to about 1 % to hold still). ``True``: the
+            action is an offset on the elastic load, ``tau = g(x) + scale * a`` with ``g`` at
+            the start of the step (held over it, like a controller sampling at the control
+            rate): ``a = 0`` holds the robot still. ``scale`` is the robot's
+            ``action_scale``, ``info["tau"]`` the applied total.
+        error_scale: [m] length of the squashed error entry of the observation (> 0,
+            default 10 mm).
     """
 
     control: str = "force"
@@ -81,6 +93,8 @@ class ReachConfig:
     snap_mode: str = "terminate"
     snap_penalty: float = -20.0
     goal_min_distance: float = 2e-3
+    compensation: bool = False
+    error_scale: float = 0.01
 
     def __post_init__(self) -> None:
         if self.control not in ("force", "joint"):
@@ -103,6 +117,14 @@ class ReachConfig:
         if not (_real(self.snap_penalty) and self.snap_penalty <= 0):
             raise ValueError(f"snap_penalty must be a finite number <= 0 (a reward added at a "
                              f"snap; > 0 would reward snapping), got {self.snap_penalty!r}")
+        if not isinstance(self.compensation, (bool, np.bool_)):
+            raise ValueError(f"compensation must be True or False, got {self.compensation!r}")
+        if self.compensation and self.control != "force":
+            raise ValueError(f"compensation=True needs control='force' (joint control already "
+                             f"holds the elastic load), got control={self.control!r}")
+        if not (_real(self.error_scale) and self.error_scale > 0):
+            raise ValueError(f"error_scale must be a finite length > 0 [m], got "
+                             f"{self.error_scale!r}")
         if not (_real(self.goal_min_distance) and self.goal_min_distance >= 0):
             raise ValueError(f"goal_min_distance must be a finite length >= 0 [m], got "
                              f"{self.goal_min_distance!r}")
@@ -224,7 +246,7 @@ class ReachBatch:
         self.rngs = [np.random.default_rng(s) for s in np.random.SeedSequence().spawn(batch_size)]
         N = self.N
         self.obs_size = 2 * N + N + 2 * N + 2 * N + (2 * N if carriage.kind == "second_order"
-                                                     else 0) + 3 + 3 + 1 + 2 * N
+                                                     else 0) + 3 + 3 + 3 + 1 + 2 * N
         # goals: the tip within 2 x reach of the orifice, then the snap flag in [0, 1]
         goal_low = np.array([-2 * robot.reach] * 3 + [0.0], np.float32)
         goal_high = np.array([2 * robot.reach] * 3 + [1.0], np.float32)
@@ -360,6 +382,8 @@ class ReachBatch:
         tip0 = self.robots.tip.copy()
         if self.config.control == "force":
             tau = a * self.robot.action_scale
+            if self.config.compensation:
+                tau = tau + self.robots.g      # g at the start of the step, held over it
             flags = self.robots.step_force(tau)
         else:
             N = self.N
@@ -406,7 +430,9 @@ class ReachBatch:
         parts = [np.sin(alpha), np.cos(alpha), Dn, rb.g / robot.action_scale, self.prev_action]
         if self.carriage.kind == "second_order":
             parts.append(rb.v / self.speeds)
-        parts += [rb.tip / robot.reach, (self.goal - rb.tip) / robot.reach,
+        err = self.goal - rb.tip
+        parts += [rb.tip / robot.reach, err / robot.reach,
+                  np.tanh(err / self.config.error_scale),
                   np.tanh(rb.margin / robot.margin_scale)[:, None],
                   rb.at_lower.astype(np.float64), rb.at_upper.astype(np.float64)]
         obs = np.clip(np.nan_to_num(np.concatenate(parts, -1), nan=0.0), -OBS_BOUND, OBS_BOUND)

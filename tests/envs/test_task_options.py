@@ -1,0 +1,118 @@
+"""Task options of issue 13, item 1: compensated force actions, the squashed error entry of the
+observation, continuing after a snap, and Gymnasium's checker on every option combination."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from gymnasium.utils.env_checker import check_env as gym_check_env
+
+import envs
+from envs import CarriageModel, CTRReachEnv, CTRReachVectorEnv, RobotBatch
+
+
+@pytest.mark.parametrize("robot", ["fig3_two_tube", "rvim_three_tube"])
+@pytest.mark.parametrize("control,compensation", [("force", False), ("force", True),
+                                                  ("joint", False)])
+@pytest.mark.parametrize("snap_mode", ["terminate", "continue"])
+def test_check_env_passes_for_every_option(robot, control, compensation, snap_mode):
+    env = CTRReachEnv(robot=robot, control=control, compensation=compensation,
+                      snap_mode=snap_mode)
+    gym_check_env(env, skip_render_check=True)
+    N = env.robot.n_tubes
+    assert env.observation_space["observation"].shape == (2 * N + N + 4 * N + 10 + 2 * N,)
+    assert env.observation_space["achieved_goal"].shape == (4,)
+
+
+def test_vector_env_checks_with_the_options():
+    v = CTRReachVectorEnv(2, compensation=True, snap_mode="continue")
+    obs, _ = v.reset(seed=0)
+    assert v.observation_space.contains(obs)
+    obs, *_ = v.step(np.zeros((2, 4), np.float32))
+    assert v.observation_space.contains(obs)
+    assert v.single_observation_space == CTRReachEnv(compensation=True).observation_space
+
+
+def test_compensated_zero_action_holds_still_and_offsets_add_to_the_load():
+    """tau = g(x) + scale * a: action 0 is rest (b xdot = tau - g = 0) exactly, where raw
+    force actions would need g / scale to float32 precision; a nonzero action moves the
+    robot exactly as the raw force g + scale * a does on a separate RobotBatch."""
+    env = CTRReachEnv(compensation=True)
+    env.reset(seed=3)
+    x0 = env.state().x
+    _, _, _, _, info = env.step(np.zeros(4, np.float32))
+    np.testing.assert_array_equal(env.state().x, x0)
+    np.testing.assert_allclose(info["tau"], env.state().g[0], rtol=1e-12)
+    a = np.array([0.0, 0.2, -0.1, 0.0], np.float32)
+    s = env.state()
+    rb = RobotBatch(env.robot, CarriageModel(), 1)
+    rb.set_state(np.array([0]), s.x)
+    rb.step_force(s.g + a.astype(np.float64) * s.action_scale)
+    env.step(a)
+    np.testing.assert_allclose(env.state().x, rb.x, rtol=0, atol=1e-12)
+    assert np.abs(env.state().x - x0).max() > 1e-4
+
+
+def test_compensation_is_for_force_control_only():
+    with pytest.raises(ValueError, match="compensation=True needs control='force'"):
+        CTRReachEnv(control="joint", compensation=True)
+    with pytest.raises(ValueError, match="compensation must be True or False"):
+        CTRReachEnv(compensation="yes")
+    with pytest.raises(ValueError, match="error_scale"):
+        CTRReachEnv(error_scale=0.0)
+
+
+@pytest.mark.parametrize("kind", ["overdamped", "second_order"])
+def test_the_error_entry_resolves_a_millimetre(kind):
+    """Observation entries after the tip and the workspace-scaled error hold
+    tanh((goal - tip) / 10 mm): 1 mm reads tanh(0.1) = 0.0997 (it read 1/303.5 = 0.0033 in
+    the workspace-scaled entry)."""
+    env = CTRReachEnv(carriage={"kind": kind})
+    obs, _ = env.reset(seed=1)
+    N = 2
+    start = 7 * N + (2 * N if kind == "second_order" else 0) + 6
+    s = env.state()
+    err = s.goal[0] - s.tip[0]
+    np.testing.assert_allclose(obs["observation"][start:start + 3], np.tanh(err / 0.01),
+                               rtol=1e-6, atol=1e-7)
+    np.testing.assert_allclose(obs["observation"][start - 3:start], err / env.robot.reach,
+                               rtol=1e-6, atol=1e-7)
+    # a goal 1 mm away along x, by moving the goal (the entry is a function of the error)
+    env.task.goal[0] = s.tip[0] + [1e-3, 0.0, 0.0]
+    o = env._obs()["observation"]
+    assert o[start] == pytest.approx(math.tanh(0.1), rel=1e-6)
+
+
+def test_continue_mode_settles_on_the_new_branch_and_goes_on():
+    """Twisting the outer and middle tubes of the three-tube robot against each other snaps
+    it (seed 2, second step). With snap_mode="continue" the episode goes on without the
+    penalty, the robot lands on a stable equilibrium of the other branch (the tip jumped by
+    far more than the carriages explain) and, held with action 0 (compensated), stays there."""
+    env = CTRReachEnv(robot="rvim_three_tube", snap_mode="continue", compensation=True)
+    env.reset(seed=2)
+    twist = np.array([0, 0, 0, -1, 1, 0], np.float32)
+    for _ in range(5):
+        tip0 = env.state().tip[0]
+        obs, r, term, trunc, info = env.step(twist)
+        if info["snapped"]:
+            break
+    assert info["snapped"] and not info["snap_terminated"] and not (term or trunc)
+    assert r == -1.0 and obs["achieved_goal"][3] == 0.0       # no penalty in continue mode
+    s = env.state()
+    assert np.linalg.norm(s.tip[0] - tip0) > 0.05 and s.margin[0] > 0
+    settled = None
+    for k in range(4):
+        obs, r, term, trunc, info = env.step(np.zeros(6, np.float32))
+        assert not (term or trunc or info["snapped"])
+        assert env.state().margin[0] > 0
+        if k == 1:
+            settled = env.state().tip[0]
+    # after the substeps of the snap period have finished moving it, it is at rest
+    np.testing.assert_allclose(env.state().tip[0], settled, atol=1e-9)
+
+
+def test_terminate_stays_the_default():
+    assert envs.ReachConfig().snap_mode == "terminate"
+    assert envs.ReachConfig().compensation is False
