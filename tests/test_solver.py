@@ -9,6 +9,7 @@ import pytest
 import torch
 
 import torchpvs as tp
+from torchpvs import testing
 from torchpvs.scene import Actuation, Scene, Tube
 
 E, G = 58.0e9, 21.5e9
@@ -16,10 +17,10 @@ E, G = 58.0e9, 21.5e9
 
 def two_tubes(L=0.1, k1=9.9, k2=13.8, alpha2=0.0, D=(0.0, 0.0), straight=(0.0, 0.0),
               lengths=None) -> Scene:
+    """:func:`torchpvs.testing.two_tubes` given overall tube lengths (straight part included)."""
     L1, L2 = lengths or (L, L)
-    t1 = Tube(E, G, 2.01e-3, 2.39e-3, straight[0], L1 - straight[0], ((), (k1,), ()), "outer")
-    t2 = Tube(E, G, 0.0, 1.6e-3, straight[1], L2 - straight[1], ((), (k2,), ()), "inner")
-    return Scene((t1, t2), Actuation(tuple(D), (0.0, alpha2)))
+    return testing.two_tubes(k1, k2, Ls1=straight[0], Lc1=L1 - straight[0], Ls2=straight[1],
+                             Lc2=L2 - straight[1], D=D, alpha=(0.0, alpha2))
 
 
 def arc_tip(kappa: float, L: float) -> torch.Tensor:

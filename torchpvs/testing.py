@@ -46,10 +46,12 @@ def dist(a, b) -> float:
 def two_tubes(k1: float, k2: float, *, E1: float = E_NITINOL, E2: float = E_NITINOL,
               od1: float = 2.39 * MM, id1: float = 2.01 * MM, od2: float = 1.6 * MM,
               id2: float = 0.0, Ls1: float = 0.0, Lc1: float = 0.1, Ls2: float = 0.0,
-              Lc2: float = 0.15, D=(0.0, 0.0), alpha=(0.0, 0.0), load: Load | None = None
-              ) -> Scene:
-    """A two-tube robot with constant precurvatures ``k1``, ``k2`` [1/m] about y."""
-    G1, G2 = E1 * G_NITINOL / E_NITINOL, E2 * G_NITINOL / E_NITINOL
+              Lc2: float = 0.15, D=(0.0, 0.0), alpha=(0.0, 0.0), load: Load | None = None,
+              G1: float | None = None, G2: float | None = None) -> Scene:
+    """A two-tube robot with constant precurvatures ``k1``, ``k2`` [1/m] about y. Shear moduli
+    default to nitinol's ratio to ``E`` (Table I)."""
+    G1 = E1 * G_NITINOL / E_NITINOL if G1 is None else G1
+    G2 = E2 * G_NITINOL / E_NITINOL if G2 is None else G2
     tubes = (Tube(E1, G1, id1, od1, Ls1, Lc1, ((), (k1,), ()), "outer"),
              Tube(E2, G2, id2, od2, Ls2, Lc2, ((), (k2,), ()), "inner"))
     return Scene(tubes, Actuation(tuple(D), tuple(alpha)), load or Load())
