@@ -254,7 +254,7 @@ class RobotBatch:
         return ok[rows]
 
     def _stiffness_of(self, eq, rows) -> np.ndarray:
-        K = actuator_stiffness(eq).numpy()[rows]
+        K = actuator_stiffness(eq, torch.as_tensor(rows)).numpy()
         K = 0.5 * (K + np.swapaxes(K, -1, -2))
         w, V = np.linalg.eigh(K)
         K = (V * np.clip(w, 0.0, None)[..., None, :]) @ np.swapaxes(V, -1, -2)

@@ -97,3 +97,21 @@ def test_actuator_stiffness_fast_path_matches_control_jacobians():
               - torch.cat([gm.actuation_forces, gm.actuation_torques], -1)) / (2 * e)
         np.testing.assert_allclose(K[:, :, c].numpy(), fd.numpy(), rtol=1e-4,
                                    atol=1e-6 * float(K.abs().max()))
+
+
+def test_actuator_stiffness_of_selected_rows_equals_the_full_batch_rows():
+    """``actuator_stiffness(eq, rows)``: the same values as the full batch's rows, whether the
+    adjoint factorization is already cached (after a full call) or not (rows factored alone)."""
+    from torchpvs.jacobians import actuator_stiffness
+
+    sc = tp.load_scene("renda2021_fig3")
+    A = torch.zeros(6, 2, dtype=torch.float64)
+    A[:, 1] = torch.linspace(0.0, 4.0, 6)
+    rows = torch.tensor([4, 0, 3])
+    fresh = actuator_stiffness(tp.solve(sc, rotation=A), rows)
+    eq = tp.solve(sc, rotation=A)
+    K = actuator_stiffness(eq)
+    np.testing.assert_allclose(fresh.numpy(), K[rows].numpy(), rtol=1e-12, atol=1e-12)
+    np.testing.assert_allclose(actuator_stiffness(eq, rows).numpy(), K[rows].numpy(),
+                               rtol=1e-12, atol=1e-12)
+    assert actuator_stiffness(eq, torch.tensor([], dtype=torch.long)).shape == (0, 4, 4)

@@ -57,14 +57,14 @@ def _rows(outputs: torch.Tensor, inputs: tuple[torch.Tensor, ...]) -> list[torch
     return [torch.stack(c, 1) for c in cols]
 
 
-def _replicated(eq, m: int):
+def _replicated(eq, m: int, rows: torch.Tensor | None = None):
     """The equilibrium's inputs and implicit context with every element repeated ``m`` times
     (rows ``b * m + i``), sharing the adjoint factorization (computed once, then indexed).
 
     Jacobian rows by ONE reverse pass: replica ``i`` of element ``b`` back-propagates only its
     output ``i`` (elements are independent), instead of ``m`` reverse passes over the batch. The
     flops are the same; the torch op count (what bounds small and medium batches on a CPU)
-    falls ``m``-fold."""
+    falls ``m``-fold. ``rows``: only these batch rows (all when None)."""
     from .implicit import _adjoint_factor
 
     ctx = eq._ctx
@@ -72,19 +72,31 @@ def _replicated(eq, m: int):
     tubes: TubeTensors = ctx["tubes"]
     q = eq.q.detach()
     D, A, F, M = (ctx[k].detach() for k in ("D", "alpha", "F", "M"))
-    if info.get("_adjoint") is None:
-        info["_adjoint"] = _adjoint_factor(q, info, D, A, F, M, tubes.EI, tubes.GJ,
-                                           tubes.length, tubes.straight, tubes.coef)
-    idx = torch.arange(q.shape[0], device=q.device).repeat_interleave(m)
-    lu, piv, scale = info["_adjoint"]
+    rows = (torch.arange(q.shape[0], device=q.device) if rows is None
+            else torch.as_tensor(rows, device=q.device).long())
+    factors = info.get("_adjoint")
+    if factors is None and len(rows) == q.shape[0]:
+        factors = info["_adjoint"] = _adjoint_factor(
+            q, info, D, A, F, M, tubes.EI, tubes.GJ, tubes.length, tubes.straight, tubes.coef)
+    if factors is None:   # a few rows: factor those only (not cached: the cache is per batch)
+        sub = dict(info, H=info["H"][rows], qmask=info["qmask"][rows],
+                   loaded=info["loaded"][rows])
+        lu, piv, scale = _adjoint_factor(q[rows], sub, D[rows], A[rows], F[rows], M[rows],
+                                         tubes.EI, tubes.GJ, tubes.length, tubes.straight,
+                                         tubes.coef)
+        local = torch.arange(len(rows), device=q.device).repeat_interleave(m)
+        lu, piv, scale = lu[local], piv[local], scale[local]
+    else:
+        lu, piv, scale = (t[rows.repeat_interleave(m)] for t in factors)
+    idx = rows.repeat_interleave(m)
     rep = {k: v for k, v in info.items() if k != "H"}
-    rep.update(qmask=info["qmask"][idx], loaded=info["loaded"][idx],
-               _adjoint=(lu[idx], piv[idx], scale[idx]))
+    rep.update(qmask=info["qmask"][idx], loaded=info["loaded"][idx], _adjoint=(lu, piv, scale))
     return q[idx], rep, tuple(t[idx] for t in (D, A, F, M)), tubes
 
 
-def actuator_stiffness(eq) -> torch.Tensor:
-    """``K_x = dtau/dx`` ``(B, 2N, 2N)`` [N/m, N, N·m] at an :class:`~torchpvs.Equilibrium` —
+def actuator_stiffness(eq, rows=None) -> torch.Tensor:
+    """``K_x = dtau/dx`` ``(B, 2N, 2N)`` [N/m, N, N·m] at an :class:`~torchpvs.Equilibrium`
+    (``(len(rows), 2N, 2N)`` for the batch rows ``rows`` only, when given) —
     the first block of :func:`control_jacobians` alone, without its re-solve for load
     coordinates (which only the tip compliance needs). The cheap path for time stepping
     (torchpvs environments).
@@ -95,8 +107,12 @@ def actuator_stiffness(eq) -> torch.Tensor:
     factorization (shared with the implicit backward). Under a tip moment (non-conservative)
     through the implicit backward, in one reverse pass over the repeated batch."""
     B, N = eq._ctx["D"].shape
+    if rows is not None:
+        B = len(rows)
     m = 2 * N
-    q, info, (D, A, F, M), tubes = _replicated(eq, m)
+    if B == 0:
+        return torch.zeros(0, m, m, dtype=eq.q.dtype, device=eq.q.device)
+    q, info, (D, A, F, M), tubes = _replicated(eq, m, rows)
     D.requires_grad_(True)
     A.requires_grad_(True)
     pick = torch.eye(m, dtype=q.dtype, device=q.device).repeat(B, 1)        # (B m, 2N)
