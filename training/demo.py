@@ -4,11 +4,11 @@
 
 Loads the shipped SAC+HER policy for the force/torque-action environment (the paper's Fig. 3
 robot; a residual agent on the operational-space controller, see ``training/residual.py``),
-evaluates it on seeded goals next to the model-based operational-space controller,
-prints the success rates and final errors, and saves ``demo_out/reach.png``: on the first seeded
-goal the policy reaches, the tip paths of the policy and the controller (top and side views),
-their tip error over time, and the policy's actuator forces and torques. Without a policy file
-it demos the controller alone and says so.
+evaluates it on seeded goals next to the model-based controllers (plan-then-servo and
+operational-space), prints the success rates and final errors, and saves
+``demo_out/reach.png``: on the first seeded goal the first policy reaches, the tip paths of every
+policy (top and side views), their tip error over time, and the first policy's actuator forces
+and torques. Without a policy file it loads, it demos the controllers alone and says so.
 """
 
 from __future__ import annotations
@@ -28,11 +28,12 @@ def _episodes(policy, venv, seed: int) -> dict[str, np.ndarray]:
     tip ``(B, T+1, 3)``, distance ``(B, T)`` [m], commanded forces/torques ``(B, T, 2N)``."""
     venv.seed(seed)
     obs = venv.reset()
-    tips, dist, tau = [obs["achieved_goal"].copy()], [], []
-    goal = venv.task.goal.copy()
+    # achieved_goal = (tip [m], snap flag): the tip is its first three entries
+    tips, dist, tau = [obs["achieved_goal"][:, :3].copy()], [], []
+    goal = venv.state().goal
     for _ in range(venv.max_episode_steps):
         obs, _, _, infos = venv.step(policy(obs))
-        tips.append(np.array([i.get("terminal_observation", {}).get("achieved_goal", o)
+        tips.append(np.array([i.get("terminal_observation", {}).get("achieved_goal", o)[:3]
                               for i, o in zip(infos, obs["achieved_goal"], strict=True)]))
         dist.append([i["distance"] for i in infos])
         tau.append(np.stack([i["tau"] for i in infos]))
@@ -49,7 +50,8 @@ def _figure(runs: dict[str, dict], k: int, robot, path: Path, dt: float) -> None
     fig = Figure(figsize=(12, 6.6))
     FigureCanvasAgg(fig)
     gs = fig.add_gridspec(2, 2, width_ratios=[1, 1.35])
-    styles = [dict(color="tab:blue", lw=2.2), dict(color="tab:orange", lw=1.8, ls="--")]
+    styles = [dict(color="tab:blue", lw=2.2), dict(color="tab:orange", lw=1.8, ls="--"),
+              dict(color="tab:purple", lw=1.5, ls=":")]
     first = next(iter(runs.values()))
     goal, start = first["goal"][k] * 1e3, first["tip"][k, 0] * 1e3
     for row, (i, j, view) in enumerate(((0, 1, "top view"), (0, 2, "side view"))):
@@ -106,7 +108,7 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(1)
 
     import envs
-    from training.controllers import OperationalSpaceController
+    from training.controllers import OperationalSpaceController, PlanThenServoController
     from training.evaluate import load_policy, rollout, summarize
 
     out = Path(args.output_dir)
@@ -114,13 +116,18 @@ def main(argv: list[str] | None = None) -> int:
     policies = {}
     if Path(args.policy).exists():
         meta = Path(args.policy).with_suffix(".json")
-        residual = meta.exists() and "residual" in json.loads(meta.read_text())
-        label = "SAC+HER residual on OSC" if residual else "SAC+HER (force actions)"
-        policies[label] = load_policy(args.policy, venv)
+        residual = json.loads(meta.read_text()).get("residual") if meta.exists() else None
+        label = (f"SAC+HER residual on {residual.get('base', 'osc').upper()}" if residual
+                 else "SAC+HER (force actions)")
+        try:
+            policies[label] = load_policy(args.policy, venv)
+        except ValueError as e:  # e.g. trained on an older observation layout
+            print(f"cannot load {args.policy} ({str(e).splitlines()[0][:200]}): demo of the "
+                  f"model-based controllers only")
     else:
-        print(f"no policy at {args.policy}: demo of the model-based controller only "
-              f"(train one with: python -m training.train --config "
-              f"training/configs/sac_her_force.yaml)")
+        print(f"no policy at {args.policy}: demo of the model-based controllers only "
+              f"(train one with: python -m training.train --algo sac --residual base:pts)")
+    policies["plan-then-servo"] = PlanThenServoController(venv)
     policies["operational-space controller"] = OperationalSpaceController(venv)
     print(f"torque-controlled reaching, {venv.robot.name}: actions are actuator forces "
           f"(+-{venv.robot.force_scale} N) and torques (+-{venv.robot.torque_scale} N·m); "

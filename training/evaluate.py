@@ -1,15 +1,23 @@
 """Evaluate agents and baselines on the same fixed, seeded goals.
 
-    python -m training.evaluate --policy training/policies/sac_her_force.zip \
-        --baselines osc zero random --episodes 500 --out runs/eval
+    python -m training.evaluate --policy agent=runs/<run>/best_model.zip \
+        --baselines pts osc zero random --episodes 500 --out runs/eval
+    python -m training.evaluate --policy logs/tqc/torchpvs-CTRReachForce-v0_1   # rl_zoo3 run
 
 Every policy runs on a :class:`envs.CTRReachVecEnv` seeded identically, so episode ``k`` has the
 same start state and goal for every policy. Metrics (per policy): success at 1/2/5 mm (final
 distance), median, IQR and 95th percentile of the final error, steps to the first hit and to
-settle (within 1 mm until the end), effort ``sum ||tau||^2 dt`` and peak ``|tau|``, fraction of
-saturated action components, snap and solver-failure rates. Writes ``metrics.json`` and figures
-(error histogram, workspace error map, trajectories with force traces, learning curve when
-a run folder with ``evaluations.npz`` is given).
+settle (within 1 mm until the end) with the fraction that settles, effort ``sum ||tau||^2 dt``
+and peak ``|tau|``, fraction of saturated action components, snap and solver-failure rates.
+Writes ``metrics.json`` and figures (error histogram, workspace error map, trajectories with
+force traces, learning curve when a run folder with ``evaluations.npz`` is given).
+
+Policies: a model trained by ``training.train`` (its ``model.zip``/``best_model.zip``; the
+sibling ``.json`` names the algorithm, env and residual base), or an rl_zoo3 run (its folder
+``logs/<algo>/<env>_<n>/``, or a ``.zip`` in it: the algorithm, env kwargs, residual wrapper
+and normalization are read from the run's ``<env>/args.yml`` and ``config.yml``). Baselines:
+``pts`` (plan-then-servo), ``osc`` (operational-space), ``zero``, ``random``
+(:mod:`training.controllers`).
 """
 
 from __future__ import annotations
@@ -21,10 +29,17 @@ import time
 from pathlib import Path
 
 import numpy as np
+import yaml
 
-__all__ = ["rollout", "summarize", "main"]
+__all__ = ["rollout", "summarize", "load_policy", "policy_meta", "main"]
 
 TOLERANCES = (1e-3, 2e-3, 5e-3)
+
+# Env kwargs of a training run that define the task, not the policy: every policy is evaluated
+# with the defaults, so all meet the same goals and the same episode rules. The others (the
+# action/observation options, the carriage model) are the policy's and are kept.
+TASK_NOT_POLICY = ("reward", "dense_scale", "tolerance", "snap_penalty", "snap_mode",
+                   "goal_min_distance", "max_episode_steps", "render_mode")
 
 
 def rollout(policy, venv, n_episodes: int, seed: int = 12345, progress: bool = True,
@@ -57,8 +72,8 @@ def rollout(policy, venv, n_episodes: int, seed: int = 12345, progress: bool = T
         snap = np.zeros(B, dtype=bool)
         fail = np.zeros(B, dtype=bool)
         alive = np.ones(B, dtype=bool)
-        goal = venv.task.goal.copy()
-        start_tip = venv.task.robots.tip.copy()
+        st = venv.state()
+        goal, start_tip = st.goal, st.tip
         travel = venv.task.travel_steps()
         tr_tip, tr_tau = [], []
         for t in range(T):
@@ -75,8 +90,9 @@ def rollout(policy, venv, n_episodes: int, seed: int = 12345, progress: bool = T
             fail |= alive & np.array([i["solver_failure"] for i in infos])
             alive &= ~(dones & (t < T - 1))
             if len(traces) + 0 < keep_traces:
-                tr_tip.append(np.array([i["terminal_observation"]["achieved_goal"]
-                                        if "terminal_observation" in i else o
+                # achieved_goal = (tip [m], snap flag): the tip is its first three entries
+                tr_tip.append(np.array([i["terminal_observation"]["achieved_goal"][:3]
+                                        if "terminal_observation" in i else o[:3]
                                         for i, o in zip(infos, obs["achieved_goal"],
                                                         strict=True)]))
                 tr_tau.append(tau)
@@ -124,6 +140,8 @@ def summarize(res: dict[str, np.ndarray]) -> dict[str, float]:
         "mean_error_mm": float(e.mean()),
         "steps_to_first_hit_median": float(np.median(hit)) if len(hit) else None,
         "steps_to_settle_median": float(np.median(settle)) if len(settle) else None,
+        "steps_to_settle_p95": float(np.percentile(settle, 95)) if len(settle) else None,
+        "settled_fraction": float((res["settle"] > 0).mean()),
         "effort_median_N2s": float(np.median(res["effort"])),
         "peak_tau_median": float(np.median(res["peak_tau"])),
         "saturation_fraction": float(res["saturation"].mean()),
@@ -220,54 +238,98 @@ def _figures(results: dict, out: Path, run_dir: Path | None) -> list[Path]:
     return paths
 
 
-def load_policy(path: str, venv):
-    """An SB3 model (.zip) as a batched, deterministic policy."""
-    from stable_baselines3 import PPO, SAC, TD3
+def _zoo_yaml(path: Path) -> dict:
+    """An rl_zoo3 ``config.yml``/``args.yml``: an OrderedDict dumped by PyYAML, read with a
+    safe loader that knows only that tag (no arbitrary Python objects)."""
+    class Loader(yaml.SafeLoader):
+        pass
 
-    algo, residual = None, None
-    meta = Path(path).with_suffix(".json")
-    if meta.exists():
-        info = json.loads(meta.read_text())
-        algo, residual = info.get("algo"), info.get("residual")
-    classes = {"sac": SAC, "td3": TD3, "ppo": PPO}
-    order = [classes[algo]] if algo in classes else list(classes.values())
-    err = None
-    for cls in order:
-        try:
-            model = cls.load(path, env=venv, device="cpu")  # HER needs the env
-            break
-        except Exception as e:  # noqa: BLE001 - try the next algorithm
-            err = e
-    else:
-        raise ValueError(f"cannot load {path}: {err}")
+    def ordered(loader, node):
+        return dict(tuple(pair) for pair in loader.construct_sequence(node.value[0], deep=True))
+
+    Loader.add_constructor("tag:yaml.org,2002:python/object/apply:collections.OrderedDict",
+                           ordered)
+    return yaml.load(path.read_text(), Loader=Loader)  # noqa: S506 - SafeLoader subclass
+
+
+def policy_meta(path: str | Path) -> tuple[Path, dict]:
+    """``(model .zip, meta)`` for a training.train model or an rl_zoo3 run. ``meta`` holds
+    ``algo``, ``env_id``, ``env_kwargs``, ``residual`` (the residual spec or None) and
+    ``vecnormalize`` (the statistics file or None). Raises ``ValueError`` naming what is
+    missing."""
+    path = Path(path)
+    if path.is_dir() or not path.with_suffix(".json").exists():
+        # an rl_zoo3 run: <run>/<env-name>.zip, best_model.zip, <env-name>/{args,config}.yml
+        run = path if path.is_dir() else path.parent
+        args_files = sorted(run.glob("*/args.yml"))
+        if not args_files:
+            raise ValueError(f"{path}: neither a training.train model (no "
+                             f"{path.with_suffix('.json').name} beside it) nor an rl_zoo3 run "
+                             f"folder (no <env>/args.yml in {run})")
+        params = args_files[0].parent
+        args, config = _zoo_yaml(params / "args.yml"), _zoo_yaml(params / "config.yml")
+        if path.is_dir():
+            best = run / "best_model.zip"
+            path = best if best.exists() else run / f"{params.name}.zip"
+        if not path.exists():
+            raise ValueError(f"{run}: no model .zip found")
+        from .train import residual_spec
+        stats = params / "vecnormalize.pkl"
+        return path, {"algo": args["algo"], "env_id": args["env"],
+                      "env_kwargs": config.get("env_kwargs") or {},
+                      "residual": residual_spec(config),
+                      "vecnormalize": stats if stats.exists() else None}
+    info = json.loads(path.with_suffix(".json").read_text())
+    stats = [p for p in (path.with_name("vecnormalize.pkl"),
+                         path.with_name(path.stem + "_vecnormalize.pkl")) if p.exists()]
+    return path, {"algo": info.get("algo"), "env_id": info.get("env_id"),
+                  "env_kwargs": info.get("env_kwargs") or {}, "residual": info.get("residual"),
+                  "vecnormalize": stats[0] if stats else None}
+
+
+def load_policy(path: str, venv):
+    """A trained model (see :func:`policy_meta`) as a batched, deterministic policy on
+    ``venv`` (a :class:`envs.CTRReachVecEnv`), with its residual base and its observation
+    normalization applied as in training."""
+    from .train import ALGOS, algo_class
+
+    path, meta = policy_meta(path)
+    algo = meta["algo"]
+    if algo not in ALGOS:
+        raise ValueError(f"{path}: algo must be one of {ALGOS}, got {algo!r}")
+    try:
+        model = algo_class(algo).load(path, env=venv, device="cpu")  # HER needs the env
+    except Exception as e:  # noqa: BLE001 - name the file and the algorithm
+        raise ValueError(f"cannot load {path} as {algo}: {e}") from e
     norm = None
-    stats = Path(path).with_name(Path(path).stem + "_vecnormalize.pkl")
-    if stats.exists():
-        import pickle
-        with open(stats, "rb") as f:
-            norm = pickle.load(f)
+    if meta["vecnormalize"] is not None:
+        from stable_baselines3.common.vec_env import VecNormalize
+        norm = VecNormalize.load(str(meta["vecnormalize"]), venv)
         norm.training = False
 
     def policy(obs):
         o = norm.normalize_obs(obs) if norm is not None else obs
         return model.predict(o, deterministic=True)[0]
-    if residual is not None:
+    if meta["residual"] is not None:
         from .residual import residual_policy
-        return residual_policy(policy, venv, residual)
+        return residual_policy(policy, venv, meta["residual"])
     return policy
 
 
 def main(argv: list[str] | None = None) -> int:
     import torch
 
+    from training.controllers import CONTROLLERS
+
     p = argparse.ArgumentParser(prog="python -m training.evaluate", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--policy", action="append", default=[], metavar="NAME=PATH",
-                   help="an SB3 .zip (NAME= optional); repeatable")
-    p.add_argument("--baselines", nargs="*", default=[], choices=["osc", "zero", "random"])
+    p.add_argument("--policy", action="append", default=[], metavar="[NAME=]PATH",
+                   help="a training.train model .zip, or an rl_zoo3 run folder or .zip in it; "
+                        "repeatable")
+    p.add_argument("--baselines", nargs="*", default=[], choices=sorted(CONTROLLERS))
     p.add_argument("--env", default="torchpvs/CTRReachForce-v0",
-                   help="environment id (force or joint); a policy trained on the joint env "
-                        "must be evaluated with --env torchpvs/CTRReachJoint-v0")
+                   help="environment id of the baselines (a policy uses the one it was "
+                        "trained on)")
     p.add_argument("--robot", default="fig3_two_tube")
     p.add_argument("--episodes", type=int, default=500)
     p.add_argument("--batch", type=int, default=50, help="robots stepped together")
@@ -279,7 +341,6 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(args.threads)
 
     import envs
-    from training.controllers import OperationalSpaceController, RandomPolicy, ZeroPolicy
 
     if args.env not in envs.ENV_IDS:
         p.error(f"--env must be one of {sorted(envs.ENV_IDS)}, got {args.env!r}")
@@ -294,17 +355,21 @@ def main(argv: list[str] | None = None) -> int:
     if not jobs:
         p.error("give at least one --policy or --baselines")
     for name, path in jobs:
-        env_id = args.env
+        env_id, kwargs = args.env, {}
         if path is not None:
-            meta = Path(path).with_suffix(".json")
-            if meta.exists():
-                env_id = json.loads(meta.read_text()).get("env_id", env_id)
-        venv = envs.CTRReachVecEnv(args.batch, robot=args.robot, control=envs.ENV_IDS[env_id])
-        if path is not None:
-            policy = load_policy(path, venv)
-        else:
-            policy = {"osc": OperationalSpaceController, "zero": ZeroPolicy,
-                      "random": RandomPolicy}[name](venv)
+            try:
+                _, meta = policy_meta(path)
+            except ValueError as e:
+                p.error(str(e))
+            env_id = meta["env_id"] or env_id
+            kwargs = {k: v for k, v in meta["env_kwargs"].items() if k not in TASK_NOT_POLICY}
+            robot = kwargs.pop("robot", args.robot)
+            if robot != args.robot:
+                p.error(f"{path} was trained on robot {robot!r}; evaluate it with --robot "
+                        f"{robot} (got --robot {args.robot})")
+        venv = envs.CTRReachVecEnv(args.batch, robot=args.robot, control=envs.ENV_IDS[env_id],
+                                   **kwargs)
+        policy = load_policy(path, venv) if path is not None else CONTROLLERS[name](venv)
         t0 = time.perf_counter()
         res = rollout(policy, venv, args.episodes, seed=args.seed)
         s = summarize(res)

@@ -1,32 +1,45 @@
-"""Train an SB3 agent on a torchpvs reaching environment from a YAML config.
+"""Train an SB3 / sb3-contrib agent on a torchpvs reaching env from the rl-zoo hyperparameters.
 
-    python -m training.train --config training/configs/sac_her_force.yaml [--steps N] [--seed S]
+    python -m training.train --algo sac --env torchpvs/CTRReachForce-v0 \
+        [--env-kwargs robot:rvim_three_tube] [--hyperparams n_envs:64 gamma:0.99] \
+        [--residual base:pts scale:0.3] [-n 100000] [--seed 0] [--max-minutes 55]
 
-Configs are keyed like rl-baselines3-zoo's (see ``training/configs/``)::
+Hyperparameters come from ``training/hyperparams/<algo>.yml`` (or ``--conf-file``), the entry
+keyed by the env id, in rl-baselines3-zoo's format: the same files run unchanged with
+``python -m rl_zoo3.train --algo sac --env torchpvs/CTRReachForce-v0 --gym-packages envs
+--conf-file training/hyperparams/sac.yml`` (see docs/training.md). What this script adds to
+the zoo's:
 
-    env_id: torchpvs/CTRReachForce-v0     # or torchpvs/CTRReachJoint-v0
-    env_kwargs: {robot: fig3_two_tube, reward: sparse}
-    n_envs: 8                              # robots stepped together (one batched solve)
-    algo: sac                              # sac | td3 | ppo (HER for sac/td3 when her: given)
-    n_timesteps: 300000
-    her: {n_sampled_goal: 4, goal_selection_strategy: future}
-    normalize: false                       # VecNormalize (PPO)
-    curriculum: {start: 0.01, end: 0.001, fraction: 0.5}   # tolerance [m], exponential
-    residual: {scale: 0.3, gain: 0.7}      # optional: learn a residual on the model-based
-                                           # controller (training/residual.py)
-    eval: {freq: 20000, episodes: 50}
-    hyperparams: {learning_rate: 1e-3, gamma: 0.95, ...}   # passed to the SB3 class
+* the ``n_envs`` robots are ONE :class:`envs.CTRReachVecEnv` (one batched solve per substep)
+  instead of a ``DummyVecEnv`` of ``n_envs`` single envs (``n_envs`` separate solves);
+* ``--residual``: a residual agent on a model-based controller (:mod:`training.residual`;
+  the zoo equivalent is a ``vec_env_wrapper`` entry, which this script reads too);
+* ``--max-minutes``: a wall-clock budget; evaluation on ``--eval-episodes`` seeded episodes of
+  one batched env;
+* a run folder with everything needed to reproduce and evaluate the run.
 
-Each run folder (``runs/<config>_s<seed>_<time>/``) keeps the config, the arguments, the exact
-command, TensorBoard logs, checkpoints, ``evaluations.npz`` from the eval callback, the final
-model (``model.zip`` + ``model.json`` with the algorithm and env id) and ``train.log``.
+Overrides: ``--env-kwargs`` and ``--hyperparams`` take ``key:value`` pairs (values are Python
+literals; a bare word is a string), merged into the entry (rl_zoo3's ``--env-kwargs``
+replaces the whole ``env_kwargs`` mapping instead). Keys of the entry: ``n_timesteps``,
+``policy``, ``n_envs``, ``env_kwargs``, ``normalize``, ``monitor_kwargs``, ``callback``,
+``vec_env_wrapper``, ``noise_type``/``noise_std`` (TD3/TQC/SAC action noise),
+``replay_buffer_class``/``replay_buffer_kwargs``/``policy_kwargs`` (Python strings, as in the
+zoo) and any keyword of the algorithm's class; anything else is refused by name.
+
+Each run folder (``<out>/<algo>_<env>_s<seed>_<time>/``) keeps ``hyperparams.yml`` (the
+resolved entry), ``command.txt``, TensorBoard logs, checkpoints, ``evaluations.npz`` and
+``best_model.zip`` from the evaluation callback, the final ``model.zip``, ``model.json`` (the
+algorithm, env id and kwargs, residual spec: what :mod:`training.evaluate` needs to load it)
+and ``train.log``.
 """
 
 from __future__ import annotations
 
 import argparse
+import ast
+import importlib
+import inspect
 import json
-import math
 import shlex
 import sys
 import time
@@ -35,137 +48,200 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-__all__ = ["load_config", "make_model", "train", "main"]
+__all__ = ["ALGOS", "HYPERPARAMS_DIR", "load_hyperparams", "parse_pairs", "make_venv",
+           "make_model", "train", "main"]
 
-ALGOS = ("sac", "td3", "ppo")
+HYPERPARAMS_DIR = Path(__file__).resolve().parent / "hyperparams"
+ALGOS = ("sac", "tqc", "td3", "ppo")
+
+# Keys of a zoo entry that are not keywords of the algorithm's class.
+ZOO_KEYS = {"n_timesteps", "n_envs", "env_kwargs", "normalize", "monitor_kwargs", "callback",
+            "vec_env_wrapper", "env_wrapper", "noise_type", "noise_std", "frame_stack"}
 
 
-def load_config(path: str | Path) -> dict:
-    cfg = yaml.safe_load(Path(path).read_text())
-    if not isinstance(cfg, dict):
-        raise ValueError(f"{path}: a config is a YAML mapping")
-    known = {"env_id", "env_kwargs", "n_envs", "algo", "n_timesteps", "her", "normalize",
-             "curriculum", "eval", "hyperparams", "policy", "max_episode_steps", "notes",
-             "residual"}
-    unknown = set(cfg) - known
+def algo_class(algo: str):
+    """The SB3 / sb3-contrib class of ``algo`` (one of :data:`ALGOS`)."""
+    if algo == "tqc":
+        from sb3_contrib import TQC
+        return TQC
+    from stable_baselines3 import PPO, SAC, TD3
+    try:
+        return {"sac": SAC, "td3": TD3, "ppo": PPO}[algo]
+    except KeyError:
+        raise ValueError(f"algo must be one of {ALGOS}, got {algo!r}") from None
+
+
+def load_hyperparams(algo: str, env_id: str, conf_file: str | Path | None = None) -> dict:
+    """The entry for ``env_id`` of ``conf_file`` (default ``training/hyperparams/<algo>.yml``),
+    checked: ``env_id`` registered, every key known to rl_zoo3 or to the algorithm's class."""
+    import envs
+
+    if env_id not in envs.ENV_IDS:
+        raise ValueError(f"env must be one of {sorted(envs.ENV_IDS)}, got {env_id!r}")
+    path = Path(conf_file) if conf_file else HYPERPARAMS_DIR / f"{algo}.yml"
+    data = yaml.safe_load(path.read_text())
+    if not isinstance(data, dict):
+        raise ValueError(f"{path}: a hyperparameter file is a mapping from env id to entry")
+    if env_id not in data:
+        raise ValueError(f"{path}: no entry for env {env_id!r} (entries: {sorted(data)})")
+    entry = dict(data[env_id])
+    check_entry(entry, algo, f"{path} [{env_id}]")
+    return entry
+
+
+def check_entry(entry: dict, algo: str, where: str) -> None:
+    """Refuse keys that are neither zoo keys nor keywords of ``algo``'s class."""
+    params = set(inspect.signature(algo_class(algo).__init__).parameters) - {"self", "env"}
+    unknown = set(entry) - ZOO_KEYS - params
     if unknown:
-        raise ValueError(f"{path}: unknown keys {sorted(unknown)} (known: {sorted(known)})")
-    if cfg.get("algo") not in ALGOS:
-        raise ValueError(f"{path}: algo must be one of {ALGOS}, got {cfg.get('algo')!r}")
-    import envs
-    if cfg.get("env_id") not in envs.ENV_IDS:
-        raise ValueError(f"{path}: env_id must be one of {sorted(envs.ENV_IDS)}, "
-                         f"got {cfg.get('env_id')!r}")
-    return cfg
+        raise ValueError(f"{where}: unknown keys {sorted(unknown)} (neither rl_zoo3 keys "
+                         f"{sorted(ZOO_KEYS)} nor keywords of {algo_class(algo).__name__})")
+    if "n_timesteps" not in entry:
+        raise ValueError(f"{where}: n_timesteps is required")
 
 
-def make_venv(cfg: dict, n_envs: int | None = None):
-    """The batched env of ``cfg`` (wrapped in :class:`training.residual.ResidualVecEnv` when
-    the config has a ``residual`` entry)."""
-    import envs
-    venv = envs.CTRReachVecEnv(n_envs or cfg.get("n_envs", 8),
-                               control=envs.ENV_IDS[cfg["env_id"]],
-                               max_episode_steps=cfg.get("max_episode_steps", 100),
-                               **cfg.get("env_kwargs", {}))
-    if cfg.get("residual") is not None:
-        from .residual import ResidualVecEnv
-        if envs.ENV_IDS[cfg["env_id"]] != "force":
-            raise ValueError("residual: the base controller commands forces; use the force env")
-        venv = ResidualVecEnv(venv, _floats(dict(cfg["residual"])))
-    return venv
-
-
-def _floats(d: dict) -> dict:
-    """YAML 1.1 reads ``1e-3`` as a string; accept it as a number."""
+def parse_pairs(pairs: list[str] | None, flag: str) -> dict:
+    """``["key:value", ...]`` -> dict; values are Python literals, else strings."""
     out = {}
-    for k, v in d.items():
-        if isinstance(v, str):
-            try:
-                v = float(v)
-            except ValueError:
-                pass
-        out[k] = _floats(v) if isinstance(v, dict) else v
+    for item in pairs or []:
+        key, sep, value = item.partition(":")
+        if not sep or not key:
+            raise ValueError(f"{flag} takes key:value pairs, got {item!r}")
+        try:
+            out[key] = ast.literal_eval(value)
+        except (ValueError, SyntaxError):
+            out[key] = value
     return out
 
 
-def make_model(cfg: dict, venv, seed: int, log_dir: Path | None):
-    from stable_baselines3 import PPO, SAC, TD3
-    from stable_baselines3.common.noise import NormalActionNoise
-    from stable_baselines3.her.her_replay_buffer import HerReplayBuffer
+def _eval_str(value, name: str):
+    """The zoo writes ``policy_kwargs`` etc. as Python strings: evaluate them with only
+    ``dict`` and ``torch.nn`` in scope."""
+    if not isinstance(value, str):
+        return value
+    import torch.nn as nn
+    try:
+        return eval(value, {"__builtins__": {}}, {"dict": dict, "nn": nn})  # noqa: S307
+    except Exception as e:  # noqa: BLE001 - report which entry
+        raise ValueError(f"{name}: cannot evaluate {value!r}: {e}") from None
 
-    hp = _floats(dict(cfg.get("hyperparams", {})))
-    algo = cfg["algo"]
-    kwargs = dict(policy=cfg.get("policy", "MultiInputPolicy"), env=venv, seed=seed,
-                  verbose=0, device="cpu",
-                  tensorboard_log=str(log_dir / "tb") if log_dir is not None else None)
-    if algo in ("sac", "td3") and cfg.get("her"):
-        kwargs["replay_buffer_class"] = HerReplayBuffer
-        kwargs["replay_buffer_kwargs"] = dict(cfg["her"])
-    if algo == "td3":
-        sigma = hp.pop("action_noise_sigma", 0.1)
+
+def _import(dotted: str):
+    module, _, name = dotted.rpartition(".")
+    if not module:
+        raise ValueError(f"expected a dotted path module.Name, got {dotted!r}")
+    return getattr(importlib.import_module(module), name)
+
+
+def _named_list(spec, key: str) -> list[tuple[type, dict]]:
+    """The zoo's ``callback``/``vec_env_wrapper`` entries: a dotted name, a one-key mapping
+    ``{name: kwargs}``, or a list of these -> ``[(class, kwargs)]``."""
+    if spec is None:
+        return []
+    out = []
+    for item in spec if isinstance(spec, list) else [spec]:
+        if isinstance(item, dict):
+            if len(item) != 1:
+                raise ValueError(f"{key}: each entry is a name or a one-key mapping "
+                                 f"{{name: kwargs}}, got {item!r}")
+            (name, kw), = item.items()
+        else:
+            name, kw = item, {}
+        out.append((_import(name), dict(kw or {})))
+    return out
+
+
+def make_venv(env_id: str, hp: dict, n_envs: int | None = None):
+    """One batched :class:`envs.CTRReachVecEnv` of ``n_envs`` (default ``hp["n_envs"]``)
+    robots with ``hp["env_kwargs"]``, wrapped in the entry's ``vec_env_wrapper`` list."""
+    import envs
+    kw = dict(hp.get("env_kwargs") or {})
+    if "control" in kw:
+        raise ValueError("env_kwargs: 'control' is set by the env id (CTRReachForce/Joint)")
+    venv = envs.CTRReachVecEnv(int(n_envs or hp.get("n_envs", 1)),
+                               control=envs.ENV_IDS[env_id], **kw)
+    for cls, kwargs in _named_list(hp.get("vec_env_wrapper"), "vec_env_wrapper"):
+        venv = cls(venv, **kwargs)
+    return venv
+
+
+def residual_spec(hp: dict) -> dict | None:
+    """The :class:`training.residual.ResidualVecEnv` keywords in the entry, if any."""
+    from .residual import ResidualVecEnv
+    for cls, kwargs in _named_list(hp.get("vec_env_wrapper"), "vec_env_wrapper"):
+        if cls is ResidualVecEnv:
+            return {**dict(kwargs.pop("spec", None) or {}), **kwargs}
+    return None
+
+
+def make_model(algo: str, hp: dict, venv, seed: int, log_dir: Path | None):
+    """The algorithm's model on ``venv`` with the entry's keywords (zoo keys resolved)."""
+    cls = algo_class(algo)
+    kw = {k: v for k, v in hp.items() if k not in ZOO_KEYS}
+    for name in ("policy_kwargs", "replay_buffer_kwargs"):
+        if name in kw:
+            kw[name] = _eval_str(kw[name], name)
+    rb = kw.get("replay_buffer_class")
+    if isinstance(rb, str):
+        from stable_baselines3 import HerReplayBuffer
+        kw["replay_buffer_class"] = HerReplayBuffer if rb == "HerReplayBuffer" else _import(rb)
+    for name in ("learning_rate", "clip_range"):
+        v = kw.get(name)
+        if isinstance(v, str) and v.startswith("lin_"):   # the zoo's linear schedule
+            v0 = float(v[4:])
+            kw[name] = lambda p, v0=v0: p * v0
+    if isinstance(kw.get("train_freq"), list):
+        kw["train_freq"] = tuple(kw["train_freq"])
+    if hp.get("noise_type"):
+        from stable_baselines3.common.noise import NormalActionNoise, OrnsteinUhlenbeckActionNoise
         n = venv.action_space.shape[0]
-        kwargs["action_noise"] = NormalActionNoise(np.zeros(n), sigma * np.ones(n))
-    cls = {"sac": SAC, "td3": TD3, "ppo": PPO}[algo]
-    return cls(**kwargs, **hp)
+        std = float(hp.get("noise_std", 0.1))
+        noise = {"normal": NormalActionNoise,
+                 "ornstein-uhlenbeck": OrnsteinUhlenbeckActionNoise}.get(hp["noise_type"])
+        if noise is None:
+            raise ValueError(f"noise_type must be 'normal' or 'ornstein-uhlenbeck', got "
+                             f"{hp['noise_type']!r}")
+        kw["action_noise"] = noise(np.zeros(n), std * np.ones(n))
+    base = dict(policy="MultiInputPolicy", seed=seed, verbose=0, device="cpu",
+                tensorboard_log=str(log_dir / "tb") if log_dir is not None else None)
+    return cls(env=venv, **{**base, **kw})
 
 
-def _callbacks(cfg, venv_train, run_dir: Path, seed: int, total: int, progress: bool,
-               max_minutes: float | None = None):
+def _normalize_kwargs(hp: dict) -> dict | None:
+    v = hp.get("normalize")
+    if not v:
+        return None
+    kw = _eval_str(v, "normalize") if isinstance(v, str) else v
+    kw = dict(kw) if isinstance(kw, dict) else {}
+    kw.setdefault("gamma", float(hp.get("gamma", 0.99)))
+    return kw
+
+
+def _callbacks(algo, env_id, hp, venv_train, run_dir: Path, seed: int, total: int,
+               eval_freq: int, eval_episodes: int, progress: bool, max_minutes: float | None):
     from stable_baselines3.common.callbacks import (
-        BaseCallback,
         CallbackList,
         CheckpointCallback,
         EvalCallback,
         ProgressBarCallback,
     )
+    from stable_baselines3.common.vec_env import VecMonitor, VecNormalize
 
-    class ToleranceCurriculum(BaseCallback):
-        """Exponential decay of the success tolerance from ``start`` to ``end`` [m] over the
-        first ``fraction`` of training (``env_method("set_tolerance")``), then ``end``."""
+    from .callbacks import WallClockLimit
 
-        def __init__(self, start: float, end: float, fraction: float):
-            super().__init__()
-            self.start, self.end, self.fraction = start, end, fraction
-
-        def tolerance(self, t: int) -> float:
-            p = min(1.0, t / max(1.0, self.fraction * total))
-            return math.exp(math.log(self.start) + p * (math.log(self.end) - math.log(self.start)))
-
-        def _on_step(self) -> bool:
-            tol = self.tolerance(self.num_timesteps)
-            self.training_env.env_method("set_tolerance", tol, indices=[0])
-            self.logger.record("curriculum/tolerance_mm", tol * 1e3)
-            return True
-
-    class WallClockLimit(BaseCallback):
-        """Stop training after ``minutes`` of wall time (the run keeps what it learned)."""
-
-        def __init__(self, minutes: float):
-            super().__init__()
-            self.deadline = time.perf_counter() + 60.0 * minutes
-
-        def _on_step(self) -> bool:
-            return time.perf_counter() < self.deadline
-
-    cbs = []
+    cbs = [cls(**kw) for cls, kw in _named_list(hp.get("callback"), "callback")]
     if max_minutes:
         cbs.append(WallClockLimit(max_minutes))
-    cur = cfg.get("curriculum")
-    if cur:
-        cbs.append(ToleranceCurriculum(float(cur["start"]), float(cur["end"]),
-                                       float(cur.get("fraction", 0.5))))
-    ev = cfg.get("eval", {})
-    if ev.get("freq"):
-        eval_env = make_venv(cfg, n_envs=min(10, int(ev.get("episodes", 50))))
+    if eval_freq > 0 and eval_episodes > 0:
+        eval_env = VecMonitor(make_venv(env_id, hp, n_envs=min(50, eval_episodes)))
         eval_env.seed(10_000 + seed)
-        n_envs = venv_train.num_envs
-        from stable_baselines3.common.vec_env import VecMonitor
-        eval_env = VecMonitor(eval_env)
-        if cfg.get("normalize"):
-            from stable_baselines3.common.vec_env import VecNormalize
-            eval_env = VecNormalize(eval_env, training=False, norm_reward=False)
-        cbs.append(EvalCallback(eval_env, n_eval_episodes=int(ev.get("episodes", 50)),
-                                eval_freq=max(1, int(ev["freq"]) // n_envs),
+        nk = _normalize_kwargs(hp)
+        if nk is not None:
+            eval_env = VecNormalize(eval_env, training=False, norm_reward=False,
+                                    **{k: v for k, v in nk.items()
+                                       if k not in ("training", "norm_reward")})
+        cbs.append(EvalCallback(eval_env, n_eval_episodes=eval_episodes,
+                                eval_freq=max(1, eval_freq // venv_train.num_envs),
                                 log_path=str(run_dir), best_model_save_path=str(run_dir),
                                 deterministic=True, verbose=0))
     cbs.append(CheckpointCallback(save_freq=max(1, total // 5 // venv_train.num_envs),
@@ -175,48 +251,50 @@ def _callbacks(cfg, venv_train, run_dir: Path, seed: int, total: int, progress: 
     return CallbackList(cbs)
 
 
-def train(cfg: dict, *, steps: int | None = None, seed: int = 0, out: str | Path = "runs",
-          name: str = "run", progress: bool = True, threads: int = 1,
-          max_minutes: float | None = None, argv: list[str] | None = None) -> Path:
-    """Train per ``cfg``; returns the run folder."""
+def train(algo: str, env_id: str, hp: dict, *, steps: int | None = None, seed: int = 0,
+          out: str | Path = "runs", progress: bool = True, threads: int = 1,
+          eval_freq: int = 20_000, eval_episodes: int = 200, max_minutes: float | None = None,
+          argv: list[str] | None = None) -> Path:
+    """Train ``algo`` on ``env_id`` with the (checked, overridden) entry ``hp``; returns the
+    run folder."""
     import torch
     from stable_baselines3.common.vec_env import VecMonitor, VecNormalize
 
+    check_entry(hp, algo, "hyperparams")
     torch.set_num_threads(threads)
-    total = int(steps or cfg["n_timesteps"])
-    run_dir = Path(out) / f"{name}_s{seed}_{time.strftime('%Y%m%d-%H%M%S')}"
+    total = int(steps or float(hp["n_timesteps"]))
+    tag = env_id.split("/")[-1]
+    run_dir = Path(out) / f"{algo}_{tag}_s{seed}_{time.strftime('%Y%m%d-%H%M%S')}"
     run_dir.mkdir(parents=True, exist_ok=False)
-    (run_dir / "config.yaml").write_text(yaml.safe_dump(cfg, sort_keys=False))
-    (run_dir / "args.json").write_text(json.dumps({"steps": total, "seed": seed,
-                                                   "threads": threads}, indent=2))
+    (run_dir / "hyperparams.yml").write_text(yaml.safe_dump({env_id: hp}, sort_keys=False))
     cmd = "python -m training.train " + " ".join(shlex.quote(a) for a in (argv or []))
     (run_dir / "command.txt").write_text(cmd + "\n")
-    venv = make_venv(cfg)
+    venv = make_venv(env_id, hp)
     venv.seed(seed)
-    venv = VecMonitor(venv, filename=str(run_dir / "monitor.csv"),
-                      info_keywords=("is_success",))
-    if cfg.get("normalize"):
-        venv = VecNormalize(venv, norm_obs_keys=["observation"], gamma=float(
-            _floats(cfg.get("hyperparams", {})).get("gamma", 0.99)))
-    model = make_model(cfg, venv, seed, run_dir)
-    cb = _callbacks(cfg, venv, run_dir, seed, total, progress, max_minutes)
+    mk = _eval_str(hp.get("monitor_kwargs") or {}, "monitor_kwargs")
+    venv = VecMonitor(venv, filename=str(run_dir / "monitor.csv"), **mk)
+    nk = _normalize_kwargs(hp)
+    if nk is not None:
+        venv = VecNormalize(venv, **nk)
+    model = make_model(algo, hp, venv, seed, run_dir)
+    cb = _callbacks(algo, env_id, hp, venv, run_dir, seed, total, eval_freq, eval_episodes,
+                    progress, max_minutes)
     t0 = time.perf_counter()
     model.learn(total_timesteps=total, callback=cb, tb_log_name="tb")
     wall = time.perf_counter() - t0
     done = int(model.num_timesteps)
     model.save(run_dir / "model.zip")
-    meta = {"algo": cfg["algo"], "env_id": cfg["env_id"], "env_kwargs": cfg.get("env_kwargs", {}),
+    meta = {"algo": algo, "env_id": env_id, "env_kwargs": hp.get("env_kwargs") or {},
             "steps": done, "steps_requested": total, "seed": seed, "wall_s": round(wall, 1),
             "command": cmd}
-    if cfg.get("residual") is not None:
-        meta["residual"] = _floats(dict(cfg["residual"]))
+    res = residual_spec(hp)
+    if res is not None:
+        meta["residual"] = res
     (run_dir / "model.json").write_text(json.dumps(meta, indent=2))
     if (run_dir / "best_model.zip").exists():  # the eval callback's best: same algo/env/residual
         (run_dir / "best_model.json").write_text(json.dumps(meta, indent=2))
-    if cfg.get("normalize"):
-        import pickle
-        with open(run_dir / "model_vecnormalize.pkl", "wb") as f:
-            pickle.dump(venv, f)
+    if nk is not None:
+        venv.save(str(run_dir / "vecnormalize.pkl"))
     with open(run_dir / "train.log", "a") as f:
         f.write(f"trained {done} steps in {wall:.1f} s ({done / wall:.1f} steps/s)\n")
     print(f"trained {done} steps in {wall:.1f} s -> {run_dir}", flush=True)
@@ -227,9 +305,23 @@ def main(argv: list[str] | None = None) -> int:
     argv = list(sys.argv[1:] if argv is None else argv)
     p = argparse.ArgumentParser(prog="python -m training.train", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--config", required=True, help="YAML config (training/configs/*.yaml)")
-    p.add_argument("--steps", type=int, default=None, help="override n_timesteps")
+    p.add_argument("--algo", required=True, choices=ALGOS)
+    p.add_argument("--env", default="torchpvs/CTRReachForce-v0", help="env id")
+    p.add_argument("--conf-file", default=None,
+                   help="hyperparameter YAML (default training/hyperparams/<algo>.yml)")
+    p.add_argument("--env-kwargs", nargs="*", metavar="KEY:VALUE",
+                   help="merged into the entry's env_kwargs (e.g. robot:rvim_three_tube)")
+    p.add_argument("-params", "--hyperparams", nargs="*", metavar="KEY:VALUE",
+                   help="override entry keys (e.g. n_envs:64 learning_rate:3e-4)")
+    p.add_argument("--residual", nargs="*", metavar="KEY:VALUE",
+                   help="learn a residual on a model-based controller: base:pts|osc, "
+                        "scale, gate_radius and the controller's gains (training/residual.py)")
+    p.add_argument("-n", "--n-timesteps", type=int, default=None, help="override n_timesteps")
     p.add_argument("--seed", type=int, default=0)
+    p.add_argument("--eval-freq", type=int, default=20_000,
+                   help="evaluate every this many env steps (<= 0: never)")
+    p.add_argument("--eval-episodes", type=int, default=200,
+                   help="episodes per evaluation (the issue asks >= 200 to choose checkpoints)")
     p.add_argument("--out", default="runs", help="parent folder of the run folder")
     p.add_argument("--threads", type=int, default=1, help="torch threads (1 is fastest here)")
     p.add_argument("--max-minutes", type=float, default=None,
@@ -237,11 +329,25 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--no-progress", action="store_true")
     args = p.parse_args(argv)
     try:
-        cfg = load_config(args.config)
+        hp = load_hyperparams(args.algo, args.env, args.conf_file)
+        hp.update(parse_pairs(args.hyperparams, "--hyperparams"))
+        env_kwargs = {**dict(hp.get("env_kwargs") or {}),
+                      **parse_pairs(args.env_kwargs, "--env-kwargs")}
+        if env_kwargs:
+            hp["env_kwargs"] = env_kwargs
+        if args.residual is not None:
+            import envs
+            if envs.ENV_IDS[args.env] != "force":
+                raise ValueError("--residual: the base controllers command forces; use "
+                                 "torchpvs/CTRReachForce-v0")
+            hp["vec_env_wrapper"] = [{"training.residual.ResidualVecEnv":
+                                      parse_pairs(args.residual, "--residual")}]
+        check_entry(hp, args.algo, "--hyperparams")
     except (OSError, ValueError) as e:
         p.error(str(e))
-    train(cfg, steps=args.steps, seed=args.seed, out=args.out, name=Path(args.config).stem,
+    train(args.algo, args.env, hp, steps=args.n_timesteps, seed=args.seed, out=args.out,
           progress=not args.no_progress and sys.stderr.isatty(), threads=args.threads,
+          eval_freq=args.eval_freq, eval_episodes=args.eval_episodes,
           max_minutes=args.max_minutes, argv=argv)
     return 0
 

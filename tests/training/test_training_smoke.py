@@ -1,9 +1,11 @@
-"""Training and evaluation pipeline: a short SAC+HER run end to end, config validation, metric
-definitions on hand-made episodes, and the model-based baseline on an easy goal."""
+"""Training and evaluation pipeline: the rl-zoo hyperparameter files, short runs end to end
+(training.train and rl_zoo3), metric definitions on hand-made episodes, the model-based
+baselines and the residual wrapper."""
 
 from __future__ import annotations
 
 import json
+import math
 
 import numpy as np
 import pytest
@@ -14,40 +16,74 @@ from training import evaluate, train
 from training.controllers import OperationalSpaceController, tip_jacobian
 from training.evaluate import rollout, summarize
 
-CONFIGS = sorted((train.Path(__file__).resolve().parents[2] / "training" / "configs")
-                 .glob("*.yaml"))
+HYPERPARAMS = sorted(train.HYPERPARAMS_DIR.glob("*.yml"))
+ZOO_ENV = "torchpvs/CTRReachForce-v0"
 
 
-@pytest.mark.parametrize("path", CONFIGS, ids=lambda p: p.stem)
-def test_shipped_configs_are_valid(path):
-    cfg = train.load_config(path)
-    assert cfg["env_id"] in envs.ENV_IDS
+def _tiny(hp: dict, **kw) -> dict:
+    """An entry cut down to a smoke run: 2 robots, short episodes, a small buffer."""
+    hp = {**hp, "n_envs": 2, "env_kwargs": {**hp.get("env_kwargs", {}),
+                                            "max_episode_steps": 20}}
+    return {**hp, "learning_starts": 50, "buffer_size": 1000, "batch_size": 32, **kw}
 
 
-def test_bad_config_names_the_key(tmp_path):
-    p = tmp_path / "bad.yaml"
-    p.write_text(yaml.safe_dump({"env_id": "torchpvs/CTRReachForce-v0", "algo": "dqn"}))
-    with pytest.raises(ValueError, match="algo"):
-        train.load_config(p)
-    p.write_text(yaml.safe_dump({"env_id": "x", "algo": "sac", "oops": 1}))
+def test_every_hyperparameter_file_is_zoo_shaped_and_names_registered_envs():
+    """One file per algorithm (sac, tqc, td3, ppo), keyed by registered env ids only, every
+    entry accepted by training.train's checks (zoo keys or keywords of the class), and the
+    YAML anchors resolved (the joint entry repeats the force entry's shared defaults)."""
+    assert {p.stem for p in HYPERPARAMS} == set(train.ALGOS)
+    for path in HYPERPARAMS:
+        data = yaml.safe_load(path.read_text())
+        assert set(data) <= set(envs.ENV_IDS), (path, set(data) - set(envs.ENV_IDS))
+        for env_id in data:
+            hp = train.load_hyperparams(path.stem, env_id, path)
+            assert float(hp["n_timesteps"]) > 0 and hp["n_envs"] >= 1
+            if path.stem != "ppo":
+                assert 0.98 <= hp["gamma"] <= 0.99, (path, hp["gamma"])
+                assert hp["replay_buffer_class"] == "HerReplayBuffer"
+        force = {k: v for k, v in data[ZOO_ENV].items()}
+        assert data["torchpvs/CTRReachJoint-v0"] == force
+
+
+def test_bad_entries_name_the_key(tmp_path):
+    p = tmp_path / "sac.yml"
+    p.write_text(yaml.safe_dump({ZOO_ENV: {"n_timesteps": 10, "oops": 1}}))
     with pytest.raises(ValueError, match="oops"):
-        train.load_config(p)
+        train.load_hyperparams("sac", ZOO_ENV, p)
+    with pytest.raises(ValueError, match="no entry"):
+        train.load_hyperparams("sac", "torchpvs/CTRReachJoint-v0", p)
+    with pytest.raises(ValueError, match="env must be one of"):
+        train.load_hyperparams("sac", "Pendulum-v1", p)
+    with pytest.raises(ValueError, match="key:value"):
+        train.parse_pairs(["n_envs=4"], "--hyperparams")
+    assert train.parse_pairs(["n_envs:4", "robot:rvim_three_tube", "lr:1e-3"], "x") == {
+        "n_envs": 4, "robot": "rvim_three_tube", "lr": 1e-3}
+
+
+def test_curriculum_schedule_and_env_tolerance():
+    from training.callbacks import ToleranceCurriculum
+
+    cb = ToleranceCurriculum(start=0.01, end=0.001, fraction=0.5)
+    cb.total = 1000
+    assert cb.tolerance(0) == pytest.approx(0.01)
+    assert cb.tolerance(250) == pytest.approx(math.sqrt(0.01 * 0.001))
+    assert cb.tolerance(500) == pytest.approx(0.001) == cb.tolerance(900)
+    with pytest.raises(ValueError, match="fraction"):
+        ToleranceCurriculum(0.01, 0.001, fraction=0)
 
 
 def test_train_200_steps_and_evaluate(tmp_path):
-    """~200 SAC+HER steps on 2 robots, the run folder's records, then the evaluation script on
-    a few goals with the saved model and the baselines."""
-    cfg = train.load_config(CONFIGS[[c.stem for c in CONFIGS].index("sac_her_force")])
-    cfg = {**cfg, "n_envs": 2, "eval": {"freq": 100, "episodes": 2}, "max_episode_steps": 20,
-           "hyperparams": {**cfg["hyperparams"], "learning_starts": 50, "buffer_size": 1000,
-                           "batch_size": 32}}
-    run = train.train(cfg, steps=200, seed=1, out=tmp_path, name="smoke", progress=False,
-                      argv=["--config", "x.yaml"])
-    for f in ("config.yaml", "args.json", "command.txt", "model.zip", "model.json",
-              "evaluations.npz", "monitor.csv", "train.log"):
+    """~200 SAC+HER steps on 2 batched robots from sac.yml, the run folder's records, the
+    curriculum applied to the training env, then the evaluation script on a few goals with
+    the saved model and a baseline."""
+    hp = _tiny(train.load_hyperparams("sac", ZOO_ENV))
+    run = train.train("sac", ZOO_ENV, hp, steps=200, seed=1, out=tmp_path, progress=False,
+                      eval_freq=100, eval_episodes=2, argv=["--algo", "sac"])
+    for f in ("hyperparams.yml", "command.txt", "model.zip", "model.json", "evaluations.npz",
+              "monitor.csv", "train.log"):
         assert (run / f).exists(), f
     meta = json.loads((run / "model.json").read_text())
-    assert meta["algo"] == "sac" and meta["steps"] >= 200
+    assert meta["algo"] == "sac" and meta["steps"] >= 200 and "residual" not in meta
     out = tmp_path / "eval"
     code = evaluate.main(["--policy", f"agent={run / 'model.zip'}", "--baselines", "zero",
                           "--episodes", "2", "--batch", "2", "--out", str(out),
@@ -57,8 +93,26 @@ def test_train_200_steps_and_evaluate(tmp_path):
     assert set(metrics) == {"agent", "zero"}
     for m in metrics.values():
         assert 0 <= m["success@1mm"] <= m["success@2mm"] <= m["success@5mm"] <= 1
-        assert m["episodes"] == 2
+        assert m["episodes"] == 2 and 0 <= m["settled_fraction"] <= 1
     assert (out / "error_histogram.png").exists() and (out / "learning_curve.png").exists()
+
+
+def test_training_cli_overrides_reach_the_run(tmp_path):
+    """--env-kwargs merges into env_kwargs, --hyperparams overrides keys, --residual adds the
+    wrapper: all recorded in the run's hyperparams.yml and model.json."""
+    code = train.main(["--algo", "td3", "-n", "40", "--out", str(tmp_path), "--eval-freq", "0",
+                       "--env-kwargs", "max_episode_steps:10",
+                       "--hyperparams", "n_envs:2", "learning_starts:20", "buffer_size:500",
+                       "batch_size:16", "callback:None",
+                       "--residual", "base:osc", "scale:0.2"])
+    assert code == 0
+    (run,) = tmp_path.iterdir()
+    hp = yaml.safe_load((run / "hyperparams.yml").read_text())[ZOO_ENV]
+    assert hp["env_kwargs"] == {"robot": "fig3_two_tube", "reward": "sparse",
+                                "max_episode_steps": 10}
+    assert hp["n_envs"] == 2 and hp["noise_type"] == "normal"
+    meta = json.loads((run / "model.json").read_text())
+    assert meta["algo"] == "td3" and meta["residual"] == {"base": "osc", "scale": 0.2}
 
 
 class _Scripted:
@@ -163,33 +217,85 @@ def test_residual_gate_keeps_the_goal_a_fixed_point():
 
 
 def test_residual_run_records_and_reloads_its_base(tmp_path):
-    """A residual config trains, writes ``residual`` into model.json, and evaluation applies the
-    base controller again (a reloaded residual agent is never the bare network)."""
-    cfg = train.load_config(CONFIGS[[c.stem for c in CONFIGS].index("sac_her_force_residual")])
-    cfg = {**cfg, "n_envs": 2, "eval": {}, "max_episode_steps": 10,
-           "hyperparams": {**cfg["hyperparams"], "learning_starts": 30, "buffer_size": 500,
-                           "batch_size": 16}}
-    run = train.train(cfg, steps=60, seed=2, out=tmp_path, name="res", progress=False)
+    """A residual run on plan-then-servo trains, writes ``residual`` into model.json, and
+    evaluation applies the base controller again (a reloaded residual agent is never the bare
+    network): policy = clip(pts + scale * gate * network)."""
+    hp = _tiny(train.load_hyperparams("sac", ZOO_ENV), learning_starts=30, buffer_size=500,
+               batch_size=16, callback=None)
+    hp["env_kwargs"]["max_episode_steps"] = 10
+    hp["vec_env_wrapper"] = [{"training.residual.ResidualVecEnv":
+                              {"base": "pts", "scale": 0.3, "table_size": 256}}]
+    run = train.train("sac", ZOO_ENV, hp, steps=60, seed=2, out=tmp_path, progress=False,
+                      eval_freq=0)
     meta = json.loads((run / "model.json").read_text())
-    assert meta["residual"]["scale"] == pytest.approx(0.3)
+    assert meta["residual"] == {"base": "pts", "scale": 0.3, "table_size": 256}
     venv = envs.CTRReachVecEnv(2, max_episode_steps=10)
     venv.seed(0)
     obs = venv.reset()
     policy = evaluate.load_policy(str(run / "model.zip"), venv)
     from stable_baselines3 import SAC
+
+    from training.controllers import PlanThenServoController
     bare = SAC.load(run / "model.zip", env=venv, device="cpu").predict(obs, deterministic=True)[0]
-    osc = OperationalSpaceController(venv, gain=0.7)(obs)
-    np.testing.assert_allclose(policy(obs), np.clip(osc + 0.3 * bare, -1, 1), atol=1e-6)
+    base = PlanThenServoController(venv, table_size=256)(obs)
+    st = venv.state()
+    gate = np.minimum(1.0, np.linalg.norm(st.goal - st.tip, axis=-1, keepdims=True) / 5e-3)
+    np.testing.assert_allclose(policy(obs), np.clip(base + 0.3 * gate * bare, -1, 1),
+                               atol=1e-6)
 
 
-def test_shipped_policy_demo_runs(tmp_path, capsys):
-    """The README's main job: the shipped policy loads (as a residual on the controller, per its
-    model.json), runs on 2 goals next to the controller, and the rollout strip is written."""
+def _zoo_train(tmp_path, extra: list[str], n: int):
+    """``python -m rl_zoo3.train`` on tqc.yml (sb3-contrib's TQC, HER, the curriculum
+    callback), cut down to ``n`` steps on 2 robots; returns the zoo run folder."""
+    import subprocess
+    import sys
+
+    cmd = [sys.executable, "-m", "rl_zoo3.train", "--algo", "tqc", "--env", ZOO_ENV,
+           "--gym-packages", "envs", "--conf-file", "training/hyperparams/tqc.yml",
+           "-n", str(n), "--seed", "3", "-f", str(tmp_path / "logs"), "--eval-freq", "-1",
+           "--env-kwargs", "max_episode_steps:10",
+           "--hyperparams", "n_envs:2", "learning_starts:40", "buffer_size:500",
+           "batch_size:16", "gradient_steps:1", "policy_kwargs:dict(net_arch=[32, 32])", *extra]
+    root = train.HYPERPARAMS_DIR.parents[1]
+    done = subprocess.run(cmd, cwd=root, capture_output=True, text=True, timeout=600)
+    assert done.returncode == 0, done.stderr[-3000:]
+    (run,) = (tmp_path / "logs" / "tqc").iterdir()
+    assert (run / "torchpvs-CTRReachForce-v0.zip").exists()
+    return run
+
+
+def test_rl_zoo3_trains_from_our_hyperparameters_and_evaluate_loads_the_run(tmp_path):
+    """The documented zoo command trains from tqc.yml (a few steps), and training.evaluate
+    loads the zoo run folder (algorithm and env from its args.yml/config.yml)."""
+    run = _zoo_train(tmp_path, [], n=100)
+    _, meta = evaluate.policy_meta(run)
+    assert meta["algo"] == "tqc" and meta["env_id"] == ZOO_ENV and meta["residual"] is None
+    out = tmp_path / "eval"
+    assert evaluate.main(["--policy", f"zoo={run}", "--episodes", "2", "--batch", "2",
+                          "--out", str(out)]) == 0
+    assert json.loads((out / "metrics.json").read_text())["zoo"]["episodes"] == 2
+
+
+def test_rl_zoo3_residual_on_plan_then_servo(tmp_path):
+    """The zoo with a residual on plan-then-servo as its vec_env_wrapper (the base plans
+    through env_method('state') on the zoo's DummyVecEnv); evaluation rebuilds the base."""
+    run = _zoo_train(tmp_path, ["vec_env_wrapper:[{'training.residual.ResidualVecEnv': "
+                                "{'base': 'pts', 'table_size': 256}}]"], n=150)
+    _, meta = evaluate.policy_meta(run)
+    assert meta["residual"] == {"base": "pts", "table_size": 256}
+    out = tmp_path / "eval"
+    assert evaluate.main(["--policy", f"zoo={run}", "--episodes", "2", "--batch", "2",
+                          "--out", str(out)]) == 0
+
+
+def test_demo_runs_with_the_controllers(tmp_path, capsys):
+    """The README's main job: the demo runs on 2 goals with plan-then-servo and the OSC (and
+    the shipped policy where it loads on the current env), prints their success rates and
+    writes the figure."""
     from training import demo
 
-    meta = json.loads(demo.DEFAULT_POLICY.with_suffix(".json").read_text())
-    assert meta["env_id"] == "torchpvs/CTRReachForce-v0" and "residual" in meta
     assert demo.main(["--goals", "2", "-o", str(tmp_path)]) == 0
     out = capsys.readouterr().out
-    assert "SAC+HER residual on OSC" in out and "operational-space controller" in out
+    assert "plan-then-servo: success@1mm" in out
+    assert "operational-space controller: success@1mm" in out
     assert (tmp_path / "reach.png").stat().st_size > 10_000
