@@ -288,6 +288,30 @@ def test_rl_zoo3_residual_on_plan_then_servo(tmp_path):
                           "--out", str(out)]) == 0
 
 
+def test_two_zoo_sweep_workers_share_one_optuna_study(tmp_path):
+    """The documented sweep: two rl_zoo3 -optimize runs with the same --storage URL and
+    --study-name (as workers on two machines would) add their trials to ONE study."""
+    import subprocess
+    import sys
+
+    import optuna
+
+    storage = f"sqlite:///{tmp_path / 'sweep.db'}"
+    for seed in (1, 2):
+        cmd = [sys.executable, "-m", "rl_zoo3.train", "--algo", "sac", "--env", ZOO_ENV,
+               "--gym-packages", "envs", "--conf-file", "training/hyperparams/sac.yml",
+               "-optimize", "--n-trials", "1", "--sampler", "random", "--pruner", "none",
+               "--storage", storage, "--study-name", "smoke", "-n", "100",
+               "--n-evaluations", "1", "--eval-episodes", "2", "--no-optim-plots",
+               "--env-kwargs", "max_episode_steps:10", "--hyperparams", "n_envs:2",
+               "-f", str(tmp_path / "logs"), "--seed", str(seed)]
+        done = subprocess.run(cmd, cwd=train.HYPERPARAMS_DIR.parents[1], capture_output=True,
+                              text=True, timeout=600)
+        assert done.returncode == 0, done.stderr[-3000:]
+    study = optuna.load_study(study_name="smoke", storage=storage)
+    assert [t.state.name for t in study.trials] == ["COMPLETE", "COMPLETE"]
+
+
 def test_demo_runs_with_the_controllers(tmp_path, capsys):
     """The README's main job: the demo runs on 2 goals with plan-then-servo and the OSC (and
     the shipped policy where it loads on the current env), prints their success rates and
