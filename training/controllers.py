@@ -9,6 +9,7 @@ Every policy maps batched observations (the ``CTRReachVecEnv`` Dict) to actions 
 
 from __future__ import annotations
 
+import itertools
 import math
 
 import numpy as np
@@ -18,7 +19,8 @@ import torchpvs
 from envs.robots import ENV_SOLVER_OPTIONS, solve_batch
 
 __all__ = ["read_state", "env_robot", "PlanThenServoController", "OperationalSpaceController",
-           "ZeroPolicy", "RandomPolicy", "tip_jacobian", "safe_rotation_target", "CONTROLLERS"]
+           "ZeroPolicy", "RandomPolicy", "tip_jacobian", "safe_rotation_target",
+           "rotation_crossings", "CONTROLLERS"]
 
 
 def tip_jacobian(robot, x: np.ndarray, initial=None) -> tuple[np.ndarray, np.ndarray]:
@@ -76,12 +78,31 @@ def _wrap(a: np.ndarray) -> np.ndarray:
     return (np.asarray(a) + np.pi) % (2 * np.pi) - np.pi
 
 
+def _windows(alpha: np.ndarray) -> np.ndarray:
+    """``(B, P)``: for each tube pair ``j < k``, the index of the ``2 pi`` window
+    ``((2m-1) pi, (2m+1) pi)`` that holds the relative rotation ``alpha_k - alpha_j``."""
+    j, k = np.triu_indices(alpha.shape[-1], 1)
+    return np.floor((alpha[..., k] - alpha[..., j] + np.pi) / (2 * np.pi))
+
+
+def rotation_crossings(alpha: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """``(B,)`` how many tube pairs' relative rotations pass an odd multiple of ``pi`` (``+-180
+    deg``, where the torsion snaps) on the straight path from ``alpha`` to ``target``
+    (``(B, N)`` [rad]): the pairs whose start and end lie in different ``2 pi`` windows."""
+    return (_windows(np.asarray(alpha)) != _windows(np.asarray(target))).sum(-1)
+
+
 def safe_rotation_target(alpha: np.ndarray, alpha_goal: np.ndarray) -> np.ndarray:
     """Base rotations ``(B, N)`` [rad] equal to ``alpha_goal`` modulo ``2 pi`` per tube, chosen
-    so that the straight path from ``alpha (B, N)`` to them keeps every relative rotation
-    ``alpha_j - alpha_1`` strictly inside the ``2 pi`` window centred on a multiple of ``2 pi``
-    that holds its current value: the path never crosses ``+-pi`` relative rotation (where the
-    torsional snap lives), and the common rotation takes the short way round.
+    so that on the straight path from ``alpha (B, N)`` no relative rotation ``alpha_k -
+    alpha_j`` of any tube pair passes ``+-180 deg`` (where the torsional snap lives), and the
+    common rotation takes the short way round.
+
+    With two tubes this always holds: the relative rotation moves inside the ``2 pi`` window
+    that holds its current value. With three or more, keeping every pair in its window may
+    be impossible on a straight path; each tube's turn count is then chosen (among the
+    window-keeping one for its pair with tube 1 and one more turn either way) for the fewest
+    crossing pairs, then the least rotation (:func:`rotation_crossings` counts what is left).
 
     Equilibria are ``2 pi``-periodic in each base rotation (turning a tube a full turn at its
     base shifts its whole twist by ``2 pi``), so the returned rotations hold the same shape.
@@ -89,10 +110,26 @@ def safe_rotation_target(alpha: np.ndarray, alpha_goal: np.ndarray) -> np.ndarra
     alpha, alpha_goal = np.asarray(alpha, np.float64), np.asarray(alpha_goal, np.float64)
     a1 = alpha[:, :1] + _wrap(alpha_goal[:, :1] - alpha[:, :1])
     rel0 = alpha[:, 1:] - alpha[:, :1]
-    # the relative rotation moves from its wrapped value to the goal's wrapped value inside
-    # [-pi, pi) (shifted by the current window's multiple of 2 pi): a convex path, no crossing
+    # each relative rotation to tube 1 moves from its wrapped value to the goal's wrapped
+    # value inside [-pi, pi) (shifted by its current window's multiple of 2 pi): no crossing
     rel = rel0 + (_wrap(alpha_goal[:, 1:] - alpha_goal[:, :1]) - _wrap(rel0))
-    return np.concatenate([a1, a1 + rel], -1)
+    best = np.concatenate([a1, a1 + rel], -1)
+    if alpha.shape[1] <= 2:
+        return best
+    cost = _rotation_cost(alpha, best)
+    for turns in itertools.product((-1, 0, 1), repeat=alpha.shape[1] - 1):
+        if not any(turns):
+            continue
+        cand = np.concatenate([a1, a1 + rel + 2 * np.pi * np.array(turns)], -1)
+        c = _rotation_cost(alpha, cand)
+        better = c < cost
+        best[better], cost[better] = cand[better], c[better]
+    return best
+
+
+def _rotation_cost(alpha: np.ndarray, target: np.ndarray) -> np.ndarray:
+    """Crossing pairs first (each outweighs any rotation), then total rotation [rad]."""
+    return 1e3 * rotation_crossings(alpha, target) + np.abs(target - alpha).sum(-1)
 
 
 class PlanThenServoController:
@@ -241,13 +278,16 @@ class PlanThenServoController:
             cand = np.concatenate(
                 [Dp, safe_rotation_target(x0[rows, N:], res.rotation.numpy())], -1)
             # rank: travel time [s] of the slowest carriage if held, plus a penalty when a
-            # relative rotation ends within rotation_margin of +-180 deg (where the torsion
-            # snaps, and where the elastic torque is steep enough to pull the servo across);
+            # relative rotation of a tube pair ends within rotation_margin of +-180 deg (where
+            # the torsion snaps, and where the elastic torque is steep enough to pull the servo
+            # across) and one per pair that would still cross it (three or more tubes);
             # unheld plans rank far behind, by their error
-            rel = _wrap(cand[:, N + 1:] - cand[:, N:N + 1])
+            j, k = np.triu_indices(N, 1)
+            rel = _wrap(cand[:, N + k] - cand[:, N + j])
             edge = (np.abs(rel) > np.pi - self.rotation_margin).any(-1)
+            cross = rotation_crossings(x0[rows, N:], cand[:, N:])
             score = np.where(held, (np.abs(cand - x0[rows]) / speed).max(-1)
-                             + EDGE_PENALTY_S * edge, 1e6 + res.error.numpy())
+                             + EDGE_PENALTY_S * (edge + cross), 1e6 + res.error.numpy())
             for k in range(K):
                 sl = slice(k * len(todo), (k + 1) * len(todo))
                 better = score[sl] < best[todo]

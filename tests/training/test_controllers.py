@@ -38,9 +38,10 @@ def _window(rel: np.ndarray) -> np.ndarray:
 
 
 def test_safe_rotation_target_keeps_the_relative_rotation_in_its_window():
+    """Two tubes: the straight path always keeps the relative rotation in its window."""
     rng = np.random.default_rng(0)
-    alpha = rng.uniform(-7, 7, (500, 3))
-    goal = rng.uniform(-7, 7, (500, 3))
+    alpha = rng.uniform(-7, 7, (500, 2))
+    goal = rng.uniform(-7, 7, (500, 2))
     target = safe_rotation_target(alpha, goal)
     # the same shape: equal modulo 2 pi, tube by tube
     np.testing.assert_allclose(np.cos(target - goal), 1.0, atol=1e-12)
@@ -51,6 +52,27 @@ def test_safe_rotation_target_keeps_the_relative_rotation_in_its_window():
         a = alpha + s * (target - alpha)
         rel = a[:, 1:] - a[:, :1]
         np.testing.assert_array_equal(_window(rel), _window(alpha[:, 1:] - alpha[:, :1]))
+
+
+def test_safe_rotation_target_with_three_tubes_crosses_the_fewest_pairs():
+    """Three tubes: the target is still the goal modulo 2 pi per tube, and no other choice of
+    whole turns (up to two either way per tube) crosses +-180 deg in fewer tube pairs."""
+    import itertools
+
+    from training.controllers import rotation_crossings
+
+    rng = np.random.default_rng(1)
+    alpha = rng.uniform(-7, 7, (200, 3))
+    goal = rng.uniform(-7, 7, (200, 3))
+    target = safe_rotation_target(alpha, goal)
+    np.testing.assert_allclose(np.cos(target - goal), 1.0, atol=1e-12)
+    got = rotation_crossings(alpha, target)
+    base = goal - 2 * np.pi * np.round((goal - alpha) / (2 * np.pi))
+    fewest = np.full(200, 99)
+    for turns in itertools.product(range(-2, 3), repeat=3):
+        fewest = np.minimum(fewest, rotation_crossings(alpha, base + 2 * np.pi * np.array(turns)))
+    np.testing.assert_array_equal(got, fewest)
+    assert (got == 0).mean() > 0.5    # most random pairs of states admit a crossing-free path
 
 
 def _one_robot(x0, goal_x, steps=100, **kw):
