@@ -141,6 +141,26 @@ def test_bad_arguments_name_the_field():
             PlanThenServoController(venv, **kw)
 
 
+def test_compensated_actions_and_joint_envs():
+    """With the env's compensation option (tau = g(x) + scale * a) the controller sends
+    (tau - g) / scale, so the applied force is the same as on the raw-force env; a
+    joint-increment env is refused by name."""
+    acts = {}
+    for comp in (False, True):
+        venv = envs.CTRReachVecEnv(2, compensation=comp)
+        venv.seed(4)
+        obs = venv.reset()
+        st = read_state(venv)
+        acts[comp] = (PlanThenServoController(venv, table_size=TABLE)(obs), st)
+    (a_raw, st), (a_comp, _) = acts[False], acts[True]
+    inside = np.abs(a_raw) < 1     # where the raw command does not saturate
+    assert inside.any()
+    np.testing.assert_allclose((a_comp * st.action_scale + st.g)[inside],
+                               (a_raw * st.action_scale)[inside], atol=1e-5)
+    with pytest.raises(ValueError, match="control='force'"):
+        PlanThenServoController(envs.CTRReachVecEnv(1, control="joint"))
+
+
 def test_reads_state_from_a_dummy_vec_env_of_single_envs():
     """rl_zoo3 wraps single envs in a DummyVecEnv: the controller reads their state through
     env_method and acts exactly as on the batched env with the same state."""
