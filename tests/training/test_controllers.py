@@ -75,9 +75,10 @@ def test_safe_rotation_target_with_three_tubes_crosses_the_fewest_pairs():
     assert (got == 0).mean() > 0.5    # most random pairs of states admit a crossing-free path
 
 
-def _one_robot(x0, goal_x, steps=100, **kw):
+def _one_robot(x0, goal_x, steps=100, env_kwargs=None, **kw):
     """A one-robot batch started at rest at ``x0``, goal = the tip at ``goal_x``."""
-    venv = envs.CTRReachVecEnv(1, max_episode_steps=steps + 1)   # no autoreset in the test
+    venv = envs.CTRReachVecEnv(1, max_episode_steps=steps + 1,    # no autoreset in the test
+                               **(env_kwargs or {}))
     venv.seed(0)
     venv.reset()
     venv.task.robots.set_state(np.array([0]), np.asarray([x0], float))
@@ -146,17 +147,14 @@ def test_compensated_actions_and_joint_envs():
     (tau - g) / scale, so the applied force is the same as on the raw-force env; a
     joint-increment env is refused by name."""
     acts = {}
-    for comp in (False, True):
-        venv = envs.CTRReachVecEnv(2, compensation=comp)
-        venv.seed(4)
-        obs = venv.reset()
-        st = read_state(venv)
-        acts[comp] = (PlanThenServoController(venv, table_size=TABLE)(obs), st)
+    for comp in (False, True):   # a near goal: the first command does not saturate
+        venv, ctrl = _one_robot([0.06, 0.15, 0.0, 0.5], [0.06, 0.149, 0.0, 0.52],
+                                env_kwargs={"compensation": comp})
+        acts[comp] = (ctrl(venv.task.observations()), read_state(venv))
     (a_raw, st), (a_comp, _) = acts[False], acts[True]
-    inside = np.abs(a_raw) < 1     # where the raw command does not saturate
-    assert inside.any()
-    np.testing.assert_allclose((a_comp * st.action_scale + st.g)[inside],
-                               (a_raw * st.action_scale)[inside], atol=1e-5)
+    assert np.all(np.abs(a_raw) < 1), a_raw
+    np.testing.assert_allclose(a_comp * st.action_scale + st.g, a_raw * st.action_scale,
+                               atol=1e-5)
     with pytest.raises(ValueError, match="control='force'"):
         PlanThenServoController(envs.CTRReachVecEnv(1, control="joint"))
 
