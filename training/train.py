@@ -185,6 +185,16 @@ def make_model(algo: str, hp: dict, venv, seed: int, log_dir: Path | None):
     if isinstance(rb, str):
         from stable_baselines3 import HerReplayBuffer
         kw["replay_buffer_class"] = HerReplayBuffer if rb == "HerReplayBuffer" else _import(rb)
+    if getattr(kw.get("replay_buffer_class"), "__name__", "") == "HerReplayBuffer":
+        # HER samples only from finished episodes: SB3 fails mid-run otherwise.
+        steps = int(getattr(venv, "max_episode_steps", 0) or 0)
+        need = venv.num_envs * steps
+        if int(kw.get("learning_starts", 100)) < need:
+            raise ValueError(
+                f"learning_starts={kw.get('learning_starts', 100)} is below n_envs x "
+                f"max_episode_steps = {venv.num_envs} x {steps} = {need}: HER cannot sample "
+                f"before the first episodes end; set learning_starts >= {need} "
+                f"(e.g. --hyperparams learning_starts:{need})")
     for name in ("learning_rate", "clip_range"):
         v = kw.get(name)
         if isinstance(v, str) and v.startswith("lin_"):   # the zoo's linear schedule
@@ -264,8 +274,18 @@ def train(algo: str, env_id: str, hp: dict, *, steps: int | None = None, seed: i
     torch.set_num_threads(threads)
     total = int(steps or float(hp["n_timesteps"]))
     tag = env_id.split("/")[-1]
-    run_dir = Path(out) / f"{algo}_{tag}_s{seed}_{time.strftime('%Y%m%d-%H%M%S')}"
-    run_dir.mkdir(parents=True, exist_ok=False)
+    res = residual_spec(hp)
+    if res is not None:
+        tag += f"_residual-{res.get('base', 'pts')}"
+    stem = Path(out) / f"{algo}_{tag}_s{seed}_{time.strftime('%Y%m%d-%H%M%S')}"
+    Path(out).mkdir(parents=True, exist_ok=True)
+    for k in range(1, 1000):  # two runs started in the same second get distinct folders
+        run_dir = stem if k == 1 else stem.with_name(f"{stem.name}-{k}")
+        try:
+            run_dir.mkdir()
+            break
+        except FileExistsError:
+            continue
     (run_dir / "hyperparams.yml").write_text(yaml.safe_dump({env_id: hp}, sort_keys=False))
     cmd = "python -m training.train " + " ".join(shlex.quote(a) for a in (argv or []))
     (run_dir / "command.txt").write_text(cmd + "\n")
@@ -287,7 +307,6 @@ def train(algo: str, env_id: str, hp: dict, *, steps: int | None = None, seed: i
     meta = {"algo": algo, "env_id": env_id, "env_kwargs": hp.get("env_kwargs") or {},
             "steps": done, "steps_requested": total, "seed": seed, "wall_s": round(wall, 1),
             "command": cmd}
-    res = residual_spec(hp)
     if res is not None:
         meta["residual"] = res
     (run_dir / "model.json").write_text(json.dumps(meta, indent=2))

@@ -323,3 +323,25 @@ def test_demo_runs_with_the_controllers(tmp_path, capsys):
     assert "plan-then-servo: success@1mm" in out
     assert "operational-space controller: success@1mm" in out
     assert (tmp_path / "reach.png").stat().st_size > 10_000
+
+
+def test_her_learning_starts_below_one_episode_per_env_is_refused_by_name(tmp_path):
+    """SB3's HER samples only from finished episodes and fails mid-run otherwise: the check
+    names the key and the bound (n_envs x max_episode_steps) before any training."""
+    with pytest.raises(ValueError, match=r"learning_starts=20 .* 4 x 10 = 40"):
+        train.main(["--algo", "sac", "-n", "40", "--out", str(tmp_path), "--eval-freq", "0",
+                    "--env-kwargs", "max_episode_steps:10", "--no-progress",
+                    "--hyperparams", "n_envs:4", "learning_starts:20", "buffer_size:500"])
+
+
+def test_runs_started_together_get_distinct_folders(tmp_path, monkeypatch):
+    """Two runs of the same algorithm, env and seed in the same second (the clock frozen):
+    distinct folders, the second with a suffix."""
+    monkeypatch.setattr(train.time, "strftime", lambda fmt: "20260101-000000")
+    hp = _tiny(train.load_hyperparams("sac", ZOO_ENV), callback=None)
+    hp["env_kwargs"]["max_episode_steps"] = 5
+    a = train.train("sac", ZOO_ENV, hp, steps=4, seed=0, out=tmp_path, progress=False,
+                    eval_freq=0)
+    b = train.train("sac", ZOO_ENV, hp, steps=4, seed=0, out=tmp_path, progress=False,
+                    eval_freq=0)
+    assert a.exists() and b.exists() and b.name == a.name + "-2"
