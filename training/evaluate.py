@@ -157,7 +157,21 @@ def summarize(res: dict[str, np.ndarray]) -> dict[str, float]:
     return s
 
 
-def _figures(results: dict, out: Path, run_dir: Path | None) -> list[Path]:
+def _wall_clock(run_dir: Path):
+    """``(minutes, cumulative env steps)`` at each finished training episode, from the run's
+    ``monitor.csv`` (SB3 Monitor: episode length ``l`` and wall time ``t`` since the start);
+    ``(None, None)`` without one."""
+    path = run_dir / "monitor.csv"
+    if not path.exists():
+        return None, None
+    rows = np.genfromtxt(path, delimiter=",", names=True, skip_header=1, dtype=None,
+                         encoding="utf-8")
+    if rows.size < 2:
+        return None, None
+    return np.asarray(rows["t"], float) / 60.0, np.cumsum(np.asarray(rows["l"], float))
+
+
+def _figures(results: dict, out: Path, run_dirs: list[Path]) -> list[Path]:
     from matplotlib.backends.backend_agg import FigureCanvasAgg
     from matplotlib.figure import Figure
 
@@ -221,19 +235,29 @@ def _figures(results: dict, out: Path, run_dir: Path | None) -> list[Path]:
             ax2.legend(fontsize=6, ncol=2)
         fig.suptitle(f"{name}: tip error and actuator forces/torques")
         save(fig, f"trajectories_{name}.png")
-    # learning curve
-    if run_dir is not None and (run_dir / "evaluations.npz").exists():
-        data = np.load(run_dir / "evaluations.npz")
-        fig = Figure(figsize=(6, 3.5))
-        ax = fig.add_subplot()
-        if "successes" in data and len(data["successes"]):
-            ax.plot(data["timesteps"], np.asarray(data["successes"]).mean(-1), marker="o")
-            ax.set_ylabel("eval success rate")
-        else:
-            ax.plot(data["timesteps"], data["results"].mean(-1), marker="o")
-            ax.set_ylabel("eval return")
-        ax.set_xlabel("environment steps")
-        ax.grid(alpha=0.3)
+    # learning curves against wall-clock time (what a 2-core budget buys)
+    runs = [d for d in run_dirs if (d / "evaluations.npz").exists()]
+    if runs:
+        fig = Figure(figsize=(11, 3.8))
+        ax1, ax2 = fig.add_subplot(1, 2, 1), fig.add_subplot(1, 2, 2)
+        for d in runs:
+            t_min, steps_at = _wall_clock(d)
+            data = np.load(d / "evaluations.npz")
+            x = np.asarray(data["timesteps"], float)
+            y = (np.asarray(data["successes"]).mean(-1) if "successes" in data
+                 and len(data["successes"]) else np.asarray(data["results"]).mean(-1))
+            label = d.name
+            ax1.plot(x, y, marker="o", label=label)
+            if t_min is not None:
+                ax2.plot(np.interp(x, steps_at, t_min), y, marker="o", label=label)
+        ax1.set_xlabel("environment steps")
+        ax2.set_xlabel("wall-clock time [min] (2 shared CPU cores)")
+        for ax in (ax1, ax2):
+            ax.set_ylabel("eval success @ current tolerance")
+            ax.grid(alpha=0.3)
+            ax.legend(fontsize=7)
+        fig.suptitle("learning curves (evaluation callback: seeded selection goals, "
+                     "tolerance of the curriculum at that time)", fontsize=9)
         save(fig, "learning_curve.png")
     return paths
 
@@ -334,7 +358,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--episodes", type=int, default=500)
     p.add_argument("--batch", type=int, default=50, help="robots stepped together")
     p.add_argument("--seed", type=int, default=12345)
-    p.add_argument("--run-dir", default=None, help="training run folder (learning curve)")
+    p.add_argument("--run-dir", action="append", default=[],
+                   help="training run folder (learning curves; repeat for several runs)")
     p.add_argument("--out", default="runs/eval")
     p.add_argument("--threads", type=int, default=1)
     args = p.parse_args(argv)
@@ -380,7 +405,7 @@ def main(argv: list[str] | None = None) -> int:
             f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}" for k, v in s.items()),
             flush=True)
     (out / "metrics.json").write_text(json.dumps(summary, indent=2))
-    paths = _figures(results, out, Path(args.run_dir) if args.run_dir else None)
+    paths = _figures(results, out, [Path(d) for d in args.run_dir])
     print(f"wrote {out / 'metrics.json'} and " + ", ".join(str(p) for p in paths))
     return 0
 
