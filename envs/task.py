@@ -70,8 +70,10 @@ class ReachConfig:
             control; default 1 mm and 5 deg).
         snap_mode: ``"terminate"`` (default: end the episode with ``snap_penalty`` added) or
             ``"continue"`` (flag it in ``info`` and go on).
-        snap_penalty: reward added at a snap (default ``-1 / (1 - 0.95) = -20``, the value of
-            never reaching the goal under the sparse reward with gamma 0.95).
+        snap_penalty: reward added at a terminating snap (default ``-60``: below
+            ``-1 / (1 - gamma)``, the value of never reaching the goal under the sparse reward,
+            for every gamma up to 0.983, so that ending an episode by a snap never pays;
+            the former ``-20`` matched gamma 0.95 and made snaps a rewarded escape at 0.98).
         goal_min_distance: [m] goals are at least this far from the start tip (finite, >= 0;
             one that cannot be met raises, see :class:`ReachBatch`).
         compensation: force control only. ``False`` (default): raw force actions,
@@ -91,7 +93,7 @@ class ReachConfig:
     dense_scale: float = 0.01
     max_joint_step: tuple[float, float] = (1e-3, math.radians(5.0))
     snap_mode: str = "terminate"
-    snap_penalty: float = -20.0
+    snap_penalty: float = -60.0
     goal_min_distance: float = 2e-3
     compensation: bool = False
     error_scale: float = 0.01

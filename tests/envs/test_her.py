@@ -79,7 +79,7 @@ def test_the_three_faces_compute_the_same_rewards():
     dg = np.concatenate([ag[..., :3] + rng.normal(size=(2, 5, 3)) * 1e-3,
                          rng.random((2, 5, 1)) < 0.5], -1)   # a relabelled flag: ignored
     d = np.linalg.norm(ag[..., :3] - dg[..., :3], axis=-1)
-    expected = -1.0 * (d > 1e-3) - 20.0 * ag[..., 3]
+    expected = -1.0 * (d > 1e-3) - 60.0 * ag[..., 3]          # the default snap_penalty
     infos = np.array([[{"snap_terminated": bool(f)} for f in row] for row in ag[..., 3]])
     for compute in faces:
         np.testing.assert_array_equal(compute(ag, dg, {}), expected.astype(np.float32))
