@@ -22,6 +22,7 @@ import warnings
 import torch
 
 from .mechanics import potential, tip_pose
+from .newton import active_index, compact
 from .sections import TubeTensors, build_layout
 
 __all__ = ["ImplicitEquilibrium", "NearSingularStiffnessWarning"]
@@ -106,7 +107,8 @@ def _adjoint_factor(q_star, info, D, alpha, F, M, EI, GJ, L, Ls, coef):
     qmask = info["qmask"]
     scale = H.diagonal(dim1=-2, dim2=-1).abs().clamp(min=1e-300)
     Hs = H / torch.sqrt(scale[:, :, None] * scale[:, None, :])
-    ev = torch.linalg.eigvalsh(Hs)
+    # The spectrum on the active coordinates (inactive rows are identity rows, eigenvalue 1).
+    ev = torch.linalg.eigvalsh(compact(Hs, active_index(qmask)))
     near = ev.abs().amin(-1) < info["singular_tol"]
     if bool(near.any()):
         warnings.warn(
