@@ -31,7 +31,7 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-__all__ = ["rollout", "summarize", "load_policy", "policy_meta", "main"]
+__all__ = ["rollout", "summarize", "load_policy", "policy_meta", "markdown_table", "main"]
 
 TOLERANCES = (1e-3, 2e-3, 5e-3)
 
@@ -155,6 +155,29 @@ def summarize(res: dict[str, np.ndarray]) -> dict[str, float]:
     s["success@1mm_reachable_in_time"] = (float((res["final_error"][ok] <= TOLERANCES[0]).mean())
                                           if ok.any() else None)
     return s
+
+
+def markdown_table(metrics: list[dict[str, dict]]) -> str:
+    """One markdown row per policy of ``metrics.json`` mappings (in order): success at 1/2/5 mm,
+    median and p95 final error, median steps to settle and the settled fraction, median
+    effort, saturation and snap rates, episodes."""
+    head = ("| policy | success @1 / 2 / 5 mm | median / p95 error [mm] | steps to settle "
+            "(median; settled) | effort Σ‖τ‖²Δt (median) | saturation | snaps | episodes |\n"
+            "|---|---|---|---|---|---|---|---|")
+
+    def f(v, spec):
+        return "—" if v is None else format(v, spec)
+
+    rows = [head]
+    for m in metrics:
+        for name, s in m.items():
+            rows.append(
+                f"| {name} | {s['success@1mm']:.3f} / {s['success@2mm']:.3f} / "
+                f"{s['success@5mm']:.3f} | {f(s['median_error_mm'], '.3g')} / "
+                f"{f(s['p95_error_mm'], '.3g')} | {f(s['steps_to_settle_median'], '.0f')}; "
+                f"{s['settled_fraction']:.2f} | {f(s['effort_median_N2s'], '.3g')} | "
+                f"{s['saturation_fraction']:.3f} | {s['snap_rate']:.3f} | {s['episodes']} |")
+    return "\n".join(rows)
 
 
 def _wall_clock(run_dir: Path):
@@ -362,7 +385,12 @@ def main(argv: list[str] | None = None) -> int:
                    help="training run folder (learning curves; repeat for several runs)")
     p.add_argument("--out", default="runs/eval")
     p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--table", nargs="+", metavar="METRICS_JSON",
+                   help="print the markdown table of saved metrics.json files and exit")
     args = p.parse_args(argv)
+    if args.table:
+        print(markdown_table([json.loads(Path(f).read_text()) for f in args.table]))
+        return 0
     torch.set_num_threads(args.threads)
 
     import envs

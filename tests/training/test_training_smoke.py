@@ -313,15 +313,16 @@ def test_two_zoo_sweep_workers_share_one_optuna_study(tmp_path):
 
 
 def test_demo_runs_with_the_controllers(tmp_path, capsys):
-    """The README's main job: the demo runs on 2 goals with plan-then-servo and the OSC (and
-    the shipped policy where it loads on the current env), prints their success rates and
-    writes the figure."""
+    """The README's main job: the demo runs on 2 goals with the shipped policy, plan-then-servo
+    and the OSC, prints their success rates and writes the figure."""
     from training import demo
 
     assert demo.main(["--goals", "2", "-o", str(tmp_path)]) == 0
     out = capsys.readouterr().out
     assert "plan-then-servo: success@1mm" in out
     assert "operational-space controller: success@1mm" in out
+    # the shipped policy (training/policies/) loads on the current env and runs beside them
+    assert "cannot load" not in out and "TQC+HER residual on PTS: success@1mm" in out
     assert (tmp_path / "reach.png").stat().st_size > 10_000
 
 
@@ -345,3 +346,20 @@ def test_runs_started_together_get_distinct_folders(tmp_path, monkeypatch):
     b = train.train("sac", ZOO_ENV, hp, steps=4, seed=0, out=tmp_path, progress=False,
                     eval_freq=0)
     assert a.exists() and b.exists() and b.name == a.name + "-2"
+
+
+def test_markdown_table_of_saved_metrics(tmp_path, capsys):
+    """``--table`` prints one row per policy of saved metrics files, in order, values rounded
+    as stated (a settle time that never happened prints as a dash)."""
+    m = {"success@1mm": 0.5, "success@2mm": 0.6, "success@5mm": 0.75, "median_error_mm": 0.25,
+         "p95_error_mm": 40.0, "steps_to_settle_median": None, "settled_fraction": 0.5,
+         "effort_median_N2s": 12.5, "saturation_fraction": 0.125, "snap_rate": 0.0625,
+         "episodes": 8}
+    path = tmp_path / "metrics.json"
+    path.write_text(json.dumps({"a": m, "b": {**m, "steps_to_settle_median": 36.0}}))
+    assert evaluate.main(["--table", str(path)]) == 0
+    rows = capsys.readouterr().out.strip().splitlines()
+    assert len(rows) == 4
+    assert rows[2] == ("| a | 0.500 / 0.600 / 0.750 | 0.25 / 40 | —; 0.50 | 12.5 | 0.125 | "
+                       "0.062 | 8 |")
+    assert rows[3].startswith("| b |") and "| 36; 0.50 |" in rows[3]
