@@ -109,7 +109,7 @@ def test_training_cli_overrides_reach_the_run(tmp_path):
     (run,) = tmp_path.iterdir()
     hp = yaml.safe_load((run / "hyperparams.yml").read_text())[ZOO_ENV]
     assert hp["env_kwargs"] == {"robot": "fig3_two_tube", "reward": "sparse",
-                                "max_episode_steps": 10}
+                                "snap_penalty": -60.0, "max_episode_steps": 10}
     assert hp["n_envs"] == 2 and hp["noise_type"] == "normal"
     meta = json.loads((run / "model.json").read_text())
     assert meta["algo"] == "td3" and meta["residual"] == {"base": "osc", "scale": 0.2}
