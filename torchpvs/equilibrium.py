@@ -16,7 +16,7 @@ from .mechanics import (
     section_start_poses,
     tip_pose,
 )
-from .newton import active_index, compact
+from .newton import active_index, compact_scaled
 from .sections import build_layout
 
 __all__ = ["Equilibrium", "actuation"]
@@ -43,8 +43,7 @@ def _scaled_stiffness(H: torch.Tensor, qmask: torch.Tensor):
     S = torch.where(active > 0, d.clamp(min=torch.finfo(H.dtype).tiny) ** -0.5,
                     torch.ones_like(d))
     act = active_index(qmask)
-    Sc = torch.gather(S, 1, act)
-    return Sc[:, :, None] * compact(H, act) * Sc[:, None, :], torch.gather(active, 1, act)
+    return compact_scaled(H, S, act)[0], torch.gather(active, 1, act)
 
 
 def _stability_threshold(dtype: torch.dtype) -> float:

@@ -57,14 +57,10 @@ def _rows(outputs: torch.Tensor, inputs: tuple[torch.Tensor, ...]) -> list[torch
     return [torch.stack(c, 1) for c in cols]
 
 
-def _replicated(eq, m: int, rows: torch.Tensor | None = None):
-    """The equilibrium's inputs and implicit context with every element repeated ``m`` times
-    (rows ``b * m + i``), sharing the adjoint factorization (computed once, then indexed).
-
-    Jacobian rows by ONE reverse pass: replica ``i`` of element ``b`` back-propagates only its
-    output ``i`` (elements are independent), instead of ``m`` reverse passes over the batch. The
-    flops are the same; the torch op count (what bounds small and medium batches on a CPU)
-    falls ``m``-fold. ``rows``: only these batch rows (all when None)."""
+def _adjoint_rows(eq, rows: torch.Tensor):
+    """The adjoint factorization ``(lu, pivots, scale)`` of batch ``rows`` of the equilibrium:
+    indexed from the cached one, or (first use) computed for the whole batch and cached, or for
+    a subset of rows only (not cached: the cache is per batch)."""
     from .implicit import _adjoint_factor
 
     ctx = eq._ctx
@@ -72,26 +68,32 @@ def _replicated(eq, m: int, rows: torch.Tensor | None = None):
     tubes: TubeTensors = ctx["tubes"]
     q = eq.q.detach()
     D, A, F, M = (ctx[k].detach() for k in ("D", "alpha", "F", "M"))
-    rows = (torch.arange(q.shape[0], device=q.device) if rows is None
-            else torch.as_tensor(rows, device=q.device).long())
+    props = (tubes.EI, tubes.GJ, tubes.length, tubes.straight, tubes.coef)
     factors = info.get("_adjoint")
     if factors is None and len(rows) == q.shape[0]:
-        factors = info["_adjoint"] = _adjoint_factor(
-            q, info, D, A, F, M, tubes.EI, tubes.GJ, tubes.length, tubes.straight, tubes.coef)
-    if factors is None:   # a few rows: factor those only (not cached: the cache is per batch)
+        factors = info["_adjoint"] = _adjoint_factor(q, info, D, A, F, M, *props)
+    if factors is None:
         sub = dict(info, H=info["H"][rows], qmask=info["qmask"][rows],
                    loaded=info["loaded"][rows])
-        lu, piv, scale = _adjoint_factor(q[rows], sub, D[rows], A[rows], F[rows], M[rows],
-                                         tubes.EI, tubes.GJ, tubes.length, tubes.straight,
-                                         tubes.coef)
-        local = torch.arange(len(rows), device=q.device).repeat_interleave(m)
-        lu, piv, scale = lu[local], piv[local], scale[local]
-    else:
-        lu, piv, scale = (t[rows.repeat_interleave(m)] for t in factors)
+        return _adjoint_factor(q[rows], sub, D[rows], A[rows], F[rows], M[rows], *props)
+    return tuple(t[rows] for t in factors)
+
+
+def _replicated(eq, m: int, rows: torch.Tensor):
+    """The equilibrium's coordinates, inputs and implicit context for batch ``rows``, every
+    element repeated ``m`` times (rows ``r * m + i``), without the adjoint factors.
+
+    Jacobian rows by ONE reverse pass: replica ``i`` of element ``r`` back-propagates only its
+    output ``i`` (elements are independent), instead of ``m`` reverse passes over the batch. The
+    flops are the same; the torch op count (what bounds small and medium batches on a CPU)
+    falls ``m``-fold."""
+    ctx = eq._ctx
+    info = ctx["implicit_info"]
     idx = rows.repeat_interleave(m)
-    rep = {k: v for k, v in info.items() if k != "H"}
-    rep.update(qmask=info["qmask"][idx], loaded=info["loaded"][idx], _adjoint=(lu, piv, scale))
-    return q[idx], rep, tuple(t[idx] for t in (D, A, F, M)), tubes
+    rep = {k: v for k, v in info.items() if k not in ("H", "_adjoint")}
+    rep.update(qmask=info["qmask"][idx], loaded=info["loaded"][idx])
+    inputs = tuple(ctx[k].detach()[idx] for k in ("D", "alpha", "F", "M"))
+    return eq.q.detach()[idx], rep, inputs, ctx["tubes"]
 
 
 def actuator_stiffness(eq, rows=None) -> torch.Tensor:
@@ -106,17 +108,19 @@ def actuator_stiffness(eq, rows=None) -> torch.Tensor:
     ``2N`` times (:func:`_replicated`), and ``H^-1 U_qx`` from the equilibrium's adjoint
     factorization (shared with the implicit backward). Under a tip moment (non-conservative)
     through the implicit backward, in one reverse pass over the repeated batch."""
-    B, N = eq._ctx["D"].shape
-    if rows is not None:
-        B = len(rows)
-    m = 2 * N
+    q0 = eq.q
+    rows = (torch.arange(q0.shape[0], device=q0.device) if rows is None
+            else torch.as_tensor(rows, device=q0.device).long())
+    B, m = len(rows), 2 * eq._ctx["D"].shape[1]
     if B == 0:
-        return torch.zeros(0, m, m, dtype=eq.q.dtype, device=eq.q.device)
+        return torch.zeros(0, m, m, dtype=q0.dtype, device=q0.device)
+    lu, piv, scale = _adjoint_rows(eq, rows)
     q, info, (D, A, F, M), tubes = _replicated(eq, m, rows)
     D.requires_grad_(True)
     A.requires_grad_(True)
     pick = torch.eye(m, dtype=q.dtype, device=q.device).repeat(B, 1)        # (B m, 2N)
     if info["has_moment"]:
+        info["_adjoint"] = tuple(t.repeat_interleave(m, 0) for t in (lu, piv, scale))
         with torch.enable_grad():
             out = differentiable_outputs(q, info, D, A, F, M, tubes)
             tau = torch.cat([out["forces"], out["torques"]], -1)
@@ -128,9 +132,8 @@ def actuator_stiffness(eq, rows=None) -> torch.Tensor:
         U = potential(q, lay, info["tab"], None, info["with_load"])
         tau = torch.cat(torch.autograd.grad(U.sum(), (D, A), create_graph=True), -1)
         Uxq, UxD, UxA = torch.autograd.grad((tau * pick).sum(), (q, D, A))
-    qmask = info["qmask"].reshape(B, m, -1)[:, 0]                          # (B, nq)
-    lu, piv, scale = info["_adjoint"]
-    lu, piv, s = lu[::m], piv[::m], scale[::m].sqrt()
+    qmask = eq._ctx["implicit_info"]["qmask"][rows]                       # (B, nq)
+    s = scale.sqrt()
     Uqx = (Uxq.reshape(B, m, -1) * qmask[:, None]).transpose(1, 2)          # (B, nq, 2N)
     # The factors are of the transposed scaled tangent (adjoint system): solve its transpose.
     Z = torch.linalg.lu_solve(lu, piv, Uqx / s[..., None], adjoint=True) / s[..., None]

@@ -26,7 +26,7 @@ import torch
 from .mechanics import _skew_vee, elastic_energy_maps, elastic_grad_hess, tip_pose
 
 __all__ = ["KERNELS", "NewtonResult", "Problem", "active_index", "chunked", "compact",
-           "derivatives", "expand", "merit", "newton", "subset"]
+           "compact_scaled", "derivatives", "expand", "merit", "newton", "subset"]
 
 
 class NewtonResult(NamedTuple):
@@ -77,6 +77,13 @@ def compact(H: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
     B, nA = act.shape
     rows = torch.gather(H, 1, act[:, :, None].expand(B, nA, H.shape[-1]))
     return torch.gather(rows, 2, act[:, None, :].expand(B, nA, nA))
+
+
+def compact_scaled(H: torch.Tensor, scale: torch.Tensor, act: torch.Tensor):
+    """The Jacobi-scaled Hessian ``S H S`` (``S = diag(scale)``, ``scale (B, nq)``) on each
+    element's active coordinates: ``(B, nA, nA)``, and the gathered scale ``(B, nA)``."""
+    sc = torch.gather(scale, 1, act)
+    return sc[:, :, None] * compact(H, act) * sc[:, None, :], sc
 
 
 def expand(v: torch.Tensor, act: torch.Tensor, nq: int) -> torch.Tensor:
@@ -230,8 +237,7 @@ def _newton(q: torch.Tensor, prob: Problem, L_char: torch.Tensor, *, method: str
             todo = torch.ones_like(lam, dtype=torch.bool)
             qmask = sub.lay["qmask"]
             act = active_index(qmask)
-        sc = torch.gather(scale, 1, act)
-        Hs = sc[:, :, None] * compact(H, act) * sc[:, None, :]
+        Hs, sc = compact_scaled(H, scale, act)
         gs = sc * torch.gather(g, 1, act)
         if method == "minimize":
             step, lam = _damped_step(Hs, gs, lam, eye[:act.shape[1], :act.shape[1]])
@@ -267,8 +273,7 @@ def _saddle_test(q, H, g, scale, new, prob: Problem, L_char, act):
     the coordinates and the mask of elements that left. ``act``: :func:`active_index` rows."""
     sel = new.nonzero().flatten()
     a = act[sel]
-    sc = torch.gather(scale[sel], 1, a)
-    Hs = sc[:, :, None] * compact(H[sel], a) * sc[:, None, :]
+    Hs, sc = compact_scaled(H[sel], scale[sel], a)
     _, info = torch.linalg.cholesky_ex(Hs)
     bad = info != 0
     left = torch.zeros_like(new)

@@ -21,7 +21,7 @@ from .newton import (
     Problem,
     active_index,
     chunked,
-    compact,
+    compact_scaled,
     derivatives,
     expand,
     scaled_residual,
@@ -406,8 +406,7 @@ def _one_newton_step(q, prob: Problem):
     H.diagonal(dim1=-2, dim2=-1).add_(1.0 - qmask)
     _, scale = scaled_residual(g, H, torch.ones_like(g[:, 0]))
     act = active_index(qmask)
-    sc = torch.gather(scale, 1, act)
-    Hs = sc[:, :, None] * compact(H, act) * sc[:, None, :]
+    Hs, sc = compact_scaled(H, scale, act)
     rhs = -(sc * torch.gather(g, 1, act))[..., None]
     L, info = torch.linalg.cholesky_ex(Hs)
     sol = torch.cholesky_solve(rhs, L)
