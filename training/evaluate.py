@@ -344,14 +344,18 @@ def load_policy(path: str, venv):
     algo = meta["algo"]
     if algo not in ALGOS:
         raise ValueError(f"{path}: algo must be one of {ALGOS}, got {algo!r}")
+    seen = venv   # the env whose observations the network reads
+    if (meta["residual"] or {}).get("plan_obs"):
+        from .residual import ResidualVecEnv
+        seen = ResidualVecEnv(venv, meta["residual"])   # its observation space has the plan
     try:
-        model = algo_class(algo).load(path, env=venv, device="cpu")  # HER needs the env
+        model = algo_class(algo).load(path, env=seen, device="cpu")  # HER needs the env
     except Exception as e:  # noqa: BLE001 - name the file and the algorithm
         raise ValueError(f"cannot load {path} as {algo}: {e}") from e
     norm = None
     if meta["vecnormalize"] is not None:
         from stable_baselines3.common.vec_env import VecNormalize
-        norm = VecNormalize.load(str(meta["vecnormalize"]), venv)
+        norm = VecNormalize.load(str(meta["vecnormalize"]), seen)
         norm.training = False
 
     def policy(obs):

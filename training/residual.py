@@ -24,19 +24,33 @@ joint-space literature needed millions of steps for.
 
 :class:`ResidualVecEnv` wraps a :class:`envs.CTRReachVecEnv` for training; :func:`residual_policy`
 turns a trained model back into a batched policy for evaluation. Both take the same ``spec``:
-``base``, ``scale``, ``gate_radius`` and the base controller's keyword arguments (recorded in
+``base``, ``scale``, ``gate_radius``, ``plan_obs`` and the base controller's keyword arguments
+(recorded in
 ``model.json`` by training/train.py; rl_zoo3 records it in the run's ``config.yml`` as the
 ``vec_env_wrapper`` entry, e.g. ``{training.residual.ResidualVecEnv: {base: pts, scale: 0.3}}``).
+
+**The plan in the observation** (``plan_obs: true``, base ``pts`` only). Plan-then-servo acts on
+a plan ``x*`` it made when the goal appeared, from the actuation it had then: the base's
+action is not a function of what the agent observes (tip, goal, actuation), so the residual's
+environment is not Markov. With ``plan_obs`` the observation's ``"observation"`` vector gains
+``tanh((x* - x) / (10 h v_max))`` (``2N`` entries: the remaining travel in units of ten
+control periods at each carriage's full-scale speed), which restores it. The same augmented
+observation goes to the policy at evaluation (:func:`residual_policy`). HER must not relabel
+such transitions (the plan belongs to the episode's goal, not to a relabelled one): train
+them with a plain replay buffer (the base reaches most goals, so the sparse reward is not
+sparse); ``training.train`` refuses the combination.
 """
 
 from __future__ import annotations
 
 import numpy as np
+from gymnasium import spaces
 from stable_baselines3.common.vec_env import VecEnvWrapper
 
 from .controllers import CONTROLLERS, read_state
 
-__all__ = ["ResidualVecEnv", "residual_policy", "make_base", "BASES"]
+__all__ = ["ResidualVecEnv", "residual_policy", "make_base", "zero_residual_head",
+           "actuation_from_observation", "BASES"]
 
 #: Base controllers a residual can be learned on.
 BASES = ("pts", "osc")
@@ -48,8 +62,8 @@ def make_base(venv, spec: dict):
     (less ``scale`` and ``gate_radius``) as its keyword arguments."""
     spec = dict(spec)
     base = spec.pop("base", "osc")
-    spec.pop("scale", None)
-    spec.pop("gate_radius", None)
+    for key in ("scale", "gate_radius", "plan_obs"):
+        spec.pop(key, None)
     if base not in BASES:
         raise ValueError(f"residual.base must be one of {BASES}, got {base!r}")
     try:
@@ -71,55 +85,163 @@ def _combine(base_action: np.ndarray, residual: np.ndarray, weight) -> np.ndarra
     return np.clip(base_action + weight * np.asarray(residual), -1.0, 1.0).astype(np.float32)
 
 
-def _spec(spec: dict | None) -> tuple[float, float]:
+def _spec(spec: dict | None) -> tuple[float, float, bool]:
     spec = dict(spec or {})
     scale, radius = float(spec.get("scale", 0.3)), float(spec.get("gate_radius", 5e-3))
+    plan_obs = spec.get("plan_obs", False)
     if not 0.0 < scale <= 2.0:
         raise ValueError(f"residual.scale must be in (0, 2], got {scale}")
     if not radius >= 0.0:
         raise ValueError(f"residual.gate_radius must be >= 0 [m], got {radius}")
-    return scale, radius
+    if not isinstance(plan_obs, bool):
+        raise ValueError(f"residual.plan_obs must be true or false, got {plan_obs!r}")
+    if plan_obs and spec.get("base", "osc") != "pts":
+        raise ValueError(f"residual.plan_obs needs base 'pts' (the only base with a plan), "
+                         f"got base {spec.get('base', 'osc')!r}")
+    return scale, radius, plan_obs
+
+
+#: Travel (in control periods at full-scale speed) that ``plan_obs`` maps to tanh(1).
+PLAN_OBS_PERIODS = 10.0
+
+
+def plan_observation_space(space: spaces.Dict, n_actuators: int) -> spaces.Dict:
+    """``space`` with ``n_actuators`` entries in ``[-1, 1]`` appended to ``"observation"``."""
+    box = space["observation"]
+    low = np.concatenate([box.low, -np.ones(n_actuators, box.dtype)])
+    high = np.concatenate([box.high, np.ones(n_actuators, box.dtype)])
+    return spaces.Dict({**space.spaces,
+                        "observation": spaces.Box(low, high, dtype=box.dtype)})
+
+
+def _plan_features(target: np.ndarray, x: np.ndarray, st) -> np.ndarray:
+    """``tanh((x* - x) / (PLAN_OBS_PERIODS h v_max))``, ``(..., 2N)``."""
+    ref = PLAN_OBS_PERIODS * st.control_period * st.action_scale / st.damping
+    return np.tanh((target - x) / ref)
+
+
+def _append(obs: dict, extra: np.ndarray) -> dict:
+    ob = obs["observation"]
+    return {**obs, "observation": np.concatenate([ob, extra.astype(ob.dtype)], -1)}
+
+
+def _with_plan(obs: dict, base, venv) -> dict:
+    """``obs`` with the plan features appended to ``"observation"`` (``base`` has planned for
+    the current goals)."""
+    st = read_state(venv)
+    return _append(obs, _plan_features(base.target, st.x, st))
+
+
+def actuation_from_observation(ob: np.ndarray, robot, alpha_near: np.ndarray) -> np.ndarray:
+    """The actuation ``x (2N,)`` that an observation vector ``ob`` describes (its first ``3N``
+    entries: ``sin alpha``, ``cos alpha``, normalized ``D``; see :mod:`envs.task`), with each
+    rotation on the turn nearest ``alpha_near (N,)`` [rad] (the observation holds the angle
+    modulo ``2 pi``; one control period turns a tube by far less than ``pi``)."""
+    N = robot.n_tubes
+    ob = np.asarray(ob, np.float64)
+    lo, hi = np.array(robot.insertion_min), np.array(robot.insertion_max)
+    D = lo + (ob[2 * N:3 * N] + 1.0) * (hi - lo) / 2.0
+    alpha = np.arctan2(ob[:N], ob[N:2 * N])
+    alpha = alpha_near + (alpha - alpha_near + np.pi) % (2 * np.pi) - np.pi
+    return np.concatenate([D, alpha])
 
 
 class ResidualVecEnv(VecEnvWrapper):
-    """Apply ``clip(base(obs) + scale * gate * action, -1, 1)`` to the wrapped env.
+    """Apply ``clip(base(obs) + scale * gate * action, -1, 1)`` to the wrapped env (the base
+    evaluated on the observation the agent acted on).
 
     ``venv`` must be a torchpvs reaching env on force actions: a :class:`envs.CTRReachVecEnv`,
     or an SB3 vec env of :class:`envs.CTRReachEnv` (rl_zoo3's ``vec_env_wrapper``); the base
     controller reads its state (:func:`training.controllers.read_state`). The spec is ``spec``
     updated with the keyword arguments (rl_zoo3 passes the wrapper's YAML mapping as keywords):
     ``base`` (``"pts"`` or ``"osc"``, default ``"osc"``), ``scale`` (default 0.3),
-    ``gate_radius`` [m] (default 5e-3; 0 = no gate) and the base controller's keyword arguments
-    (``time_constant``, ... for pts; ``gain``, ``damping``, ``max_step`` for osc).
+    ``gate_radius`` [m] (default 5e-3; 0 = no gate), ``plan_obs`` (default false: see the
+    module's docstring) and the base controller's keyword arguments (``time_constant``, ...
+    for pts; ``gain``, ``damping``, ``max_step`` for osc).
     """
 
     def __init__(self, venv, spec: dict | None = None, **fields):
-        super().__init__(venv)
         spec = {**dict(spec or {}), **fields}
+        scale, radius, plan_obs = _spec(spec)
+        space = (plan_observation_space(venv.observation_space, venv.action_space.shape[0])
+                 if plan_obs else None)
+        super().__init__(venv, observation_space=space)
         self.residual_spec = spec
-        self.scale, self.gate_radius = _spec(spec)
+        self.scale, self.gate_radius, self.plan_obs = scale, radius, plan_obs
         self.base = make_base(venv, spec)
-        self._obs = None
+        self._base_action = None
+        self._x = None    # (B, 2N) the actuation the agent last observed
+
+    def _observe(self, obs):
+        # the base plans for new goals here, so the plan is in the observation the agent sees
+        self._base_action = self.base(obs)
+        if not self.plan_obs:
+            return obs
+        st = read_state(self.venv)
+        self._x = st.x.copy()
+        return _append(obs, _plan_features(self.base.target, st.x, st))
+
+    def _terminal_with_plan(self, term: dict, i: int) -> dict:
+        """The terminal observation of robot ``i`` (already reset: its state is gone) with the
+        features of the plan it was following, at the actuation the observation describes."""
+        from .controllers import env_robot
+        st = read_state(self.venv)
+        x = actuation_from_observation(term["observation"], env_robot(self.venv),
+                                       self._x[i, self.base.robot.n_tubes:])
+        feats = _plan_features(self.base.target[i], x, st)
+        return _append(term, feats)
 
     def reset(self):
-        self._obs = self.venv.reset()
-        return self._obs
+        return self._observe(self.venv.reset())
 
     def step_async(self, actions: np.ndarray) -> None:
         weight = self.scale * _gate(self.venv, self.gate_radius)
-        self.venv.step_async(_combine(self.base(self._obs), actions, weight))
+        self.venv.step_async(_combine(self._base_action, actions, weight))
 
     def step_wait(self):
         obs, rewards, dones, infos = self.venv.step_wait()
-        self._obs = obs
-        return obs, rewards, dones, infos
+        if self.plan_obs:   # the episode's last observation (SB3 keeps it for bootstrapping)
+            for i in np.flatnonzero(dones):
+                term = infos[i].get("terminal_observation")
+                if term is not None:
+                    infos[i]["terminal_observation"] = self._terminal_with_plan(term, i)
+        return self._observe(obs), rewards, dones, infos
 
 
 def residual_policy(model_predict, venv, spec: dict):
-    """A batched policy ``obs -> action`` from a residual agent's ``predict`` on ``venv``."""
+    """A batched policy ``obs -> action`` from a residual agent's ``predict`` on ``venv``
+    (``obs`` as ``venv`` returns it: the plan is appended here when ``spec`` has
+    ``plan_obs``)."""
     base = make_base(venv, spec)
-    scale, radius = _spec(spec)
+    scale, radius, plan_obs = _spec(spec)
 
     def policy(obs):
-        return _combine(base(obs), model_predict(obs), scale * _gate(venv, radius))
+        a_base = base(obs)
+        seen = _with_plan(obs, base, venv) if plan_obs else obs
+        return _combine(a_base, model_predict(seen), scale * _gate(venv, radius))
     return policy
+
+
+def zero_residual_head(model) -> None:
+    """Zero the last layer of ``model``'s action mean (SAC/TQC ``actor.mu``, TD3 ``actor.mu``'s
+    last linear layer and its target copy, PPO ``action_net``), so that the untrained residual
+    agent's deterministic action is exactly 0: it starts as its base controller, and learning
+    moves it away only where the critic finds a gain (a random head starts it below the base,
+    and a residual agent has been measured to stay there: issue 13)."""
+    import torch
+
+    policy = model.policy
+    actor = getattr(policy, "actor", None)
+    head = getattr(actor, "mu", None) if actor is not None else getattr(policy, "action_net",
+                                                                        None)
+    if isinstance(head, torch.nn.Sequential):
+        head = [m for m in head if isinstance(m, torch.nn.Linear)][-1]
+    if not isinstance(head, torch.nn.Linear):
+        raise TypeError(f"zero_residual_head: no linear action head found on "
+                        f"{type(policy).__name__}")
+    with torch.no_grad():
+        head.weight.zero_()
+        head.bias.zero_()
+    target = getattr(policy, "actor_target", None)
+    if target is not None:
+        target.load_state_dict(actor.state_dict())

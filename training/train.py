@@ -186,6 +186,12 @@ def make_model(algo: str, hp: dict, venv, seed: int, log_dir: Path | None):
         from stable_baselines3 import HerReplayBuffer
         kw["replay_buffer_class"] = HerReplayBuffer if rb == "HerReplayBuffer" else _import(rb)
     if getattr(kw.get("replay_buffer_class"), "__name__", "") == "HerReplayBuffer":
+        if (residual_spec(hp) or {}).get("plan_obs"):
+            raise ValueError(
+                "residual plan_obs with HerReplayBuffer: the plan in the observation belongs "
+                "to the episode's goal, and HER would pair it with other goals; use a plain "
+                "replay buffer (--hyperparams replay_buffer_class:"
+                "stable_baselines3.common.buffers.DictReplayBuffer replay_buffer_kwargs:None)")
         # HER samples only from finished episodes: SB3 fails mid-run otherwise.
         steps = int(getattr(venv, "max_episode_steps", 0) or 0)
         need = venv.num_envs * steps
@@ -297,6 +303,9 @@ def train(algo: str, env_id: str, hp: dict, *, steps: int | None = None, seed: i
     if nk is not None:
         venv = VecNormalize(venv, **nk)
     model = make_model(algo, hp, venv, seed, run_dir)
+    if res is not None:
+        from .residual import zero_residual_head
+        zero_residual_head(model)
     cb = _callbacks(algo, env_id, hp, venv, run_dir, seed, total, eval_freq, eval_episodes,
                     progress, max_minutes)
     t0 = time.perf_counter()
