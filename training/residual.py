@@ -147,8 +147,7 @@ def actuation_from_observation(ob: np.ndarray, robot, alpha_near: np.ndarray) ->
 
 
 class ResidualVecEnv(VecEnvWrapper):
-    """Apply ``clip(base(obs) + scale * gate * action, -1, 1)`` to the wrapped env (the base
-    evaluated on the observation the agent acted on).
+    """Apply ``clip(base(obs) + scale * gate * action, -1, 1)`` to the wrapped env.
 
     ``venv`` must be a torchpvs reaching env on force actions: a :class:`envs.CTRReachVecEnv`,
     or an SB3 vec env of :class:`envs.CTRReachEnv` (rl_zoo3's ``vec_env_wrapper``); the base
@@ -169,14 +168,14 @@ class ResidualVecEnv(VecEnvWrapper):
         self.residual_spec = spec
         self.scale, self.gate_radius, self.plan_obs = scale, radius, plan_obs
         self.base = make_base(venv, spec)
-        self._base_action = None
+        self._obs = None
         self._x = None    # (B, 2N) the actuation the agent last observed
 
     def _observe(self, obs):
-        # the base plans for new goals here, so the plan is in the observation the agent sees
-        self._base_action = self.base(obs)
+        self._obs = obs
         if not self.plan_obs:
             return obs
+        self.base(obs)    # plans for new goals now, so the plan is in what the agent sees
         st = read_state(self.venv)
         self._x = st.x.copy()
         return _append(obs, _plan_features(self.base.target, st.x, st))
@@ -196,7 +195,7 @@ class ResidualVecEnv(VecEnvWrapper):
 
     def step_async(self, actions: np.ndarray) -> None:
         weight = self.scale * _gate(self.venv, self.gate_radius)
-        self.venv.step_async(_combine(self._base_action, actions, weight))
+        self.venv.step_async(_combine(self.base(self._obs), actions, weight))
 
     def step_wait(self):
         obs, rewards, dones, infos = self.venv.step_wait()
