@@ -5,7 +5,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from torchpvs.plotting import _equalize, plot_backbone
+from torchpvs.plotting import equalize_axes, plot_backbone
 
 from .robots import solve_batch
 
@@ -58,7 +58,7 @@ class ReachRenderer:
         text = "\n".join(f"tube {j + 1}: F = {tau[j]:+.2f} N, T = {1e3 * tau[N + j]:+.1f} mN·m"
                           for j in range(N))
         ax.text2D(0.02, 0.02, text, transform=ax.transAxes, fontsize=7)
-        _equalize(ax)  # include the goal in the view
+        equalize_axes(ax)  # include the goal in the view
         ax.legend(loc="upper left", fontsize=7)
         self.fig.canvas.draw()
         img = np.asarray(self.fig.canvas.buffer_rgba())[..., :3].copy()

@@ -70,7 +70,7 @@ def _backward(ctx, grad_q):
     # (info belongs to one solve: its H, q*, actuation and load never change.)
     cached = info.get("_adjoint")
     if cached is None:
-        cached = _adjoint_factor(q_star, info, D, alpha, F, M, EI, GJ, L, Ls, coef)
+        cached = adjoint_factor(q_star, info, D, alpha, F, M, EI, GJ, L, Ls, coef)
         info["_adjoint"] = cached
     lu, pivots, scale = cached
     lam = torch.linalg.lu_solve(lu, pivots, (grad_q * qmask / scale.sqrt())[..., None])[..., 0]
@@ -100,7 +100,7 @@ def _backward(ctx, grad_q):
     return (None, None, *out)
 
 
-def _adjoint_factor(q_star, info, D, alpha, F, M, EI, GJ, L, Ls, coef):
+def adjoint_factor(q_star, info, D, alpha, F, M, EI, GJ, L, Ls, coef):
     """LU factors of the transposed, Jacobi-scaled tangent ``K^T`` of the adjoint system and the
     scale; warns once if the stiffness is nearly singular."""
     H = info["H"]
@@ -133,7 +133,7 @@ def _adjoint_factor(q_star, info, D, alpha, F, M, EI, GJ, L, Ls, coef):
 
 def _rotation_jacobian(q_star, info, D, alpha, F, M, EI, GJ, L, Ls, coef) -> torch.Tensor:
     """``J_theta (B, 3, nq)``: spatial angular velocity of the tip frame per coordinate."""
-    from .mechanics import _skew_vee
+    from .mechanics import skew_vee
 
     lay = build_layout(TubeTensors(EI, GJ, L, Ls, coef), D, alpha, F, M, info["loaded"],
                        info["disc"])
@@ -143,7 +143,7 @@ def _rotation_jacobian(q_star, info, D, alpha, F, M, EI, GJ, L, Ls, coef) -> tor
         _, R, _ = tip_pose(q, lay_b, tab)
         with torch.no_grad():
             _, R0, _ = tip_pose(q0, lay_b, tab)
-        return _skew_vee(R @ R0.transpose(-1, -2))
+        return skew_vee(R @ R0.transpose(-1, -2))
 
     q = q_star.detach()
     lay = {k: v.detach() for k, v in lay.items()}

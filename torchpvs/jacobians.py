@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import torch
 
 from .implicit import differentiable_outputs
-from .mechanics import _skew_vee, potential
+from .mechanics import potential, skew_vee
 from .sections import TubeTensors, build_layout
 
 __all__ = ["ControlJacobians", "actuator_stiffness", "control_jacobians"]
@@ -61,7 +61,7 @@ def _adjoint_rows(eq, rows: torch.Tensor):
     """The adjoint factorization ``(lu, pivots, scale)`` of batch ``rows`` of the equilibrium:
     indexed from the cached one, or (first use) computed for the whole batch and cached, or for
     a subset of rows only (not cached: the cache is per batch)."""
-    from .implicit import _adjoint_factor
+    from .implicit import adjoint_factor
 
     ctx = eq._ctx
     info = ctx["implicit_info"]
@@ -71,11 +71,11 @@ def _adjoint_rows(eq, rows: torch.Tensor):
     props = (tubes.EI, tubes.GJ, tubes.length, tubes.straight, tubes.coef)
     factors = info.get("_adjoint")
     if factors is None and len(rows) == q.shape[0]:
-        factors = info["_adjoint"] = _adjoint_factor(q, info, D, A, F, M, *props)
+        factors = info["_adjoint"] = adjoint_factor(q, info, D, A, F, M, *props)
     if factors is None:
         sub = dict(info, H=info["H"][rows], qmask=info["qmask"][rows],
                    loaded=info["loaded"][rows])
-        return _adjoint_factor(q[rows], sub, D[rows], A[rows], F[rows], M[rows], *props)
+        return adjoint_factor(q[rows], sub, D[rows], A[rows], F[rows], M[rows], *props)
     return tuple(t[rows] for t in factors)
 
 
@@ -161,7 +161,7 @@ def control_jacobians(eq, *, rank_tol: float = 1e-9) -> ControlJacobians:
         out = differentiable_outputs(eq.q.detach(), info, D, A, F, M, tubes)
         tau = torch.cat([out["forces"], out["torques"]], -1)                # (B, 2N)
         R0 = out["R"].detach()
-        tip = torch.cat([out["tip"], _skew_vee(out["R"] @ R0.transpose(-1, -2))], -1)
+        tip = torch.cat([out["tip"], skew_vee(out["R"] @ R0.transpose(-1, -2))], -1)
         KD, KA = _rows(tau, (D, A))
         JD, JA, CF, CM = _rows(tip, (D, A, F, M))
     K = torch.cat([KD, KA], -1).detach()

@@ -16,7 +16,7 @@ from .equilibrium import Equilibrium
 from .plan import Plan
 from .scene import Scene, load_scene
 from .sections import TubeTensors
-from .solver import SolverOptions, _as_batch, _check_actuation, _solve
+from .solver import SolverOptions, as_batch, check_actuation, solve_tensors
 
 __all__ = ["CTR"]
 
@@ -137,11 +137,11 @@ class CTR(nn.Module):
         ref = self.E
         dtype, device = ref.dtype, ref.device
         N = self.scene.n_tubes
-        D = _as_batch(insertion, N, "insertion", dtype, device)
-        A = _as_batch(rotation, N, "rotation", dtype, device)
+        D = as_batch(insertion, N, "insertion", dtype, device)
+        A = as_batch(rotation, N, "rotation", dtype, device)
         zeros = torch.zeros(3, dtype=dtype, device=device)
-        F = _as_batch(zeros if tip_force is None else tip_force, 3, "tip_force", dtype, device)
-        M = _as_batch(zeros if tip_moment is None else tip_moment, 3, "tip_moment", dtype,
+        F = as_batch(zeros if tip_force is None else tip_force, 3, "tip_force", dtype, device)
+        M = as_batch(zeros if tip_moment is None else tip_moment, 3, "tip_moment", dtype,
                       device)
         B = max(t.shape[0] for t in (D, A, F, M))
         for name, t in (("insertion", D), ("rotation", A), ("tip_force", F),
@@ -149,10 +149,10 @@ class CTR(nn.Module):
             if t.shape[0] not in (1, B):
                 raise ValueError(f"{name} has batch size {t.shape[0]}, expected 1 or {B}")
         D, A, F, M = (t.expand(B, -1) for t in (D, A, F, M))
-        _check_actuation(D.detach(), self.scene)
+        check_actuation(D.detach(), self.scene)
         self._check_properties()
         tubes, plan = self._solver_tubes()
-        return _solve(self.scene, tubes, D, A, F, M, self.options, initial, plan)
+        return solve_tensors(self.scene, tubes, D, A, F, M, self.options, initial, plan)
 
     def extra_repr(self) -> str:
         return f"tubes={self.scene.n_tubes}, dtype={self.E.dtype}, device={self.E.device}"

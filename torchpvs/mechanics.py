@@ -23,7 +23,7 @@ from .lie import magnus4_step, rot_z
 __all__ = ["elastic_energy", "node_fields", "potential", "section_start_poses", "tip_pose"]
 
 
-def _poly(coef: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
+def poly(coef: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
     """``coef (..., N, 3, P)``, ``t (..., N)`` -> ``(..., N, 3)``."""
     P = coef.shape[-1]
     out = coef[..., P - 1].expand(t.shape + (3,))    # Horner from the leading coefficient
@@ -67,7 +67,7 @@ def node_fields(q: torch.Tensor, lay: dict[str, torch.Tensor], xi: torch.Tensor,
     s = start[..., None] + 0.5 * (xi + 1.0) * h[..., None]                 # (..., S, G)
     t = s[..., None] - lay["tau"][..., None, None, :]                      # (..., S, G, N)
     coef = lay["coef"][..., None, None, :, :, :]                           # (..., 1, 1, N, 3, P)
-    ustar = _poly(coef, t) * curved[..., None, :, None]
+    ustar = poly(coef, t) * curved[..., None, :, None]
     # phi/Qb are (G, n) or (..., S, G, n): matmul broadcasts over both.
     u = (a @ phi.transpose(-1, -2)).transpose(-1, -2)                    # (..., S, G, 2)
     dpsi = (c @ phi.transpose(-1, -2)).transpose(-1, -2)                 # (..., S, G, N)
@@ -161,7 +161,7 @@ def tip_pose(q: torch.Tensor, lay: dict[str, torch.Tensor], tab: dict[str, torch
     return g[..., :3, 3], R, psi_tip
 
 
-def _skew_vee(A: torch.Tensor) -> torch.Tensor:
+def skew_vee(A: torch.Tensor) -> torch.Tensor:
     """``vee((A - A^T) / 2)``: the rotation vector of ``A`` to first order near identity."""
     return 0.5 * torch.stack([A[..., 2, 1] - A[..., 1, 2], A[..., 0, 2] - A[..., 2, 0],
                               A[..., 1, 0] - A[..., 0, 1]], -1)
@@ -185,7 +185,7 @@ def potential(q: torch.Tensor, lay: dict[str, torch.Tensor], tab: dict[str, torc
     p, R, _ = tip_pose(q, lay, tab)
     work = (lay["force"] * p).sum(-1)
     if ref_rotation is not None:
-        work = work + (lay["moment"] * _skew_vee(R @ ref_rotation.transpose(-1, -2))).sum(-1)
+        work = work + (lay["moment"] * skew_vee(R @ ref_rotation.transpose(-1, -2))).sum(-1)
     return U - work
 
 

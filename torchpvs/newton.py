@@ -23,7 +23,7 @@ from typing import NamedTuple
 
 import torch
 
-from .mechanics import _skew_vee, elastic_energy_maps, elastic_grad_hess, tip_pose
+from .mechanics import elastic_energy_maps, elastic_grad_hess, skew_vee, tip_pose
 
 __all__ = ["KERNELS", "NewtonResult", "Problem", "active_index", "chunked", "compact",
            "compact_scaled", "derivatives", "expand", "merit", "newton", "subset"]
@@ -110,7 +110,7 @@ def _load_hessian(tab, has_moment: bool):
         if has_moment:
             with torch.no_grad():
                 _, R0, _ = tip_pose(q_ref, lay, tab)
-            work = work + (lay["moment"] * _skew_vee(R @ R0.transpose(-1, -2))).sum(-1)
+            work = work + (lay["moment"] * skew_vee(R @ R0.transpose(-1, -2))).sum(-1)
         return -work
 
     def grad_and_grad(q, lay, q_ref):
@@ -130,7 +130,7 @@ def merit(q: torch.Tensor, prob: Problem, q_ref: torch.Tensor) -> torch.Tensor:
         U = U - (lay["force"] * p).sum(-1)
         if prob.has_moment:
             _, R0, _ = tip_pose(q_ref, lay, tab)
-            U = U - (lay["moment"] * _skew_vee(R @ R0.transpose(-1, -2))).sum(-1)
+            U = U - (lay["moment"] * skew_vee(R @ R0.transpose(-1, -2))).sum(-1)
     return U
 
 

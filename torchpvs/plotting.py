@@ -70,7 +70,7 @@ def _runs(owners: np.ndarray) -> list[tuple[int, int, int]]:
     return runs
 
 
-def _equalize(ax: Any) -> None:
+def equalize_axes(ax: Any) -> None:
     """Limits and box aspect from everything drawn (lines and points), in data units, so that
     one mm is as long along x, y and z."""
     chunks = [np.column_stack(line.get_data_3d()) for line in ax.lines]
@@ -163,7 +163,7 @@ def plot_backbone(scene: Scene, points_xyz: Any, *, ax: Any = None, title: str |
     ax.set_zlabel("z [mm]")
     ax.set_title(title if title is not None
                  else ", ".join(t.name or f"tube{j + 1}" for j, t in enumerate(scene.tubes)))
-    _equalize(ax)
+    equalize_axes(ax)
     ax.legend(loc="upper left", fontsize=8)
     return fig, ax
 
@@ -175,7 +175,7 @@ def overlay_backbone(ax: Any, points_xyz: Any, *, label: str, color: str = "k",
     pts = as_points(points_xyz) * _MM
     (line,) = ax.plot(pts[:, 0], pts[:, 1], pts[:, 2], color=color, linestyle=linestyle,
                       linewidth=linewidth, label=label)
-    _equalize(ax)
+    equalize_axes(ax)
     ax.legend(loc="upper left", fontsize=8)
     return line
 

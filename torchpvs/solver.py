@@ -174,7 +174,7 @@ class SolverOptions:
                               n_magnus=self.n_magnus or MAGNUS_START)
 
 
-def _as_batch(x, n: int, name: str, dtype, device) -> torch.Tensor:
+def as_batch(x, n: int, name: str, dtype, device) -> torch.Tensor:
     t = torch.as_tensor(x, dtype=dtype, device=device)
     if t.ndim == 1:
         t = t[None]
@@ -185,7 +185,7 @@ def _as_batch(x, n: int, name: str, dtype, device) -> torch.Tensor:
     return t
 
 
-def _check_actuation(D: torch.Tensor, scene: Scene) -> None:
+def check_actuation(D: torch.Tensor, scene: Scene) -> None:
     if (D < 0).any():
         raise ValueError("insertion: every D_j must be >= 0 (docs/conventions.md)")
     if scene.n_tubes > 1 and (D[:, 1:] < D[:, :-1]).any():
@@ -232,13 +232,13 @@ def solve(scene: Scene | str, *, insertion=None, rotation=None, tip_force=None, 
     device = torch.device(opts.device) if opts.device is not None else (
         ref.device if ref is not None else torch.device("cpu"))
     N = scene.n_tubes
-    D = _as_batch(scene.actuation.insertion if insertion is None else insertion, N,
+    D = as_batch(scene.actuation.insertion if insertion is None else insertion, N,
                   "insertion", dtype, device)
-    A = _as_batch(scene.actuation.rotation if rotation is None else rotation, N,
+    A = as_batch(scene.actuation.rotation if rotation is None else rotation, N,
                   "rotation", dtype, device)
-    F = _as_batch(scene.load.tip_force if tip_force is None else tip_force, 3,
+    F = as_batch(scene.load.tip_force if tip_force is None else tip_force, 3,
                   "tip_force", dtype, device)
-    M = _as_batch(scene.load.tip_moment if tip_moment is None else tip_moment, 3,
+    M = as_batch(scene.load.tip_moment if tip_moment is None else tip_moment, 3,
                   "tip_moment", dtype, device)
     B = max(D.shape[0], A.shape[0], F.shape[0], M.shape[0])
     if min(D.shape[0], A.shape[0], F.shape[0], M.shape[0]) == 0:
@@ -248,17 +248,17 @@ def solve(scene: Scene | str, *, insertion=None, rotation=None, tip_force=None, 
         if t.shape[0] not in (1, B):
             raise ValueError(f"{name} has batch size {t.shape[0]}, expected 1 or {B}")
     D, A, F, M = (t.expand(B, -1).contiguous() for t in (D, A, F, M))
-    _check_actuation(D, scene)
+    check_actuation(D, scene)
     if opts.force_model == "paper" and opts.compute_forces:
-        from .equilibrium import paper_scope_check
+        from .forces import paper_scope_check
         loaded = (F.abs().sum(-1) > 0) | (M.abs().sum(-1) > 0)
         paper_scope_check(tube_tensors(scene, dtype, device), D, loaded)
     plan = plan_for(scene, dtype, device)
-    return _solve(scene, plan.tubes, D, A, F, M, opts, initial, plan)
+    return solve_tensors(scene, plan.tubes, D, A, F, M, opts, initial, plan)
 
 
-def _solve(scene: Scene, tubes: TubeTensors, D, A, F, M, opts: SolverOptions, initial,
-           plan: Plan | None = None):
+def solve_tensors(scene: Scene, tubes: TubeTensors, D, A, F, M, opts: SolverOptions, initial,
+                  plan: Plan | None = None):
     """The solve proper, on canonical ``(B, ...)`` tensors; differentiable through the implicit
     backward when any input requires grad. ``plan`` carries reuse between calls (a private
     one-off plan when ``None``)."""
@@ -344,7 +344,7 @@ def _solve(scene: Scene, tubes: TubeTensors, D, A, F, M, opts: SolverOptions, in
         return {"q": q1, "D": Dn, "alpha": An, "F": Fn, "M": Mn, "loaded": loaded}
 
     def resolve_all(options, initial_):
-        return _solve(scene, tubes, D, A, F, M, options, initial_, plan)
+        return solve_tensors(scene, tubes, D, A, F, M, options, initial_, plan)
 
     eq = Equilibrium._from_solution(scene, tubes, res, opts, elapsed, diff, plan, resolve,
                                     resolve_all)
