@@ -183,12 +183,9 @@ class ResidualVecEnv(VecEnvWrapper):
     def _terminal_with_plan(self, term: dict, i: int) -> dict:
         """The terminal observation of robot ``i`` (already reset: its state is gone) with the
         features of the plan it was following, at the actuation the observation describes."""
-        from .controllers import env_robot
-        st = read_state(self.venv)
-        x = actuation_from_observation(term["observation"], env_robot(self.venv),
-                                       self._x[i, self.base.robot.n_tubes:])
-        feats = _plan_features(self.base.target[i], x, st)
-        return _append(term, feats)
+        robot = self.base.robot
+        x = actuation_from_observation(term["observation"], robot, self._x[i, robot.n_tubes:])
+        return _append(term, _plan_features(self.base.target[i], x, read_state(self.venv)))
 
     def reset(self):
         return self._observe(self.venv.reset())
