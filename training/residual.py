@@ -43,6 +43,8 @@ sparse); ``training.train`` refuses the combination.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 from gymnasium import spaces
 from stable_baselines3.common.vec_env import VecEnvWrapper
@@ -50,7 +52,7 @@ from stable_baselines3.common.vec_env import VecEnvWrapper
 from .controllers import CONTROLLERS, read_state
 
 __all__ = ["ResidualVecEnv", "residual_policy", "make_base", "zero_residual_head",
-           "actuation_from_observation", "BASES"]
+           "actuation_from_observation", "needs_plain_replay", "BASES"]
 
 #: Base controllers a residual can be learned on.
 BASES = ("pts", "osc")
@@ -62,7 +64,7 @@ def make_base(venv, spec: dict):
     (less ``scale`` and ``gate_radius``) as its keyword arguments."""
     spec = dict(spec)
     base = spec.pop("base", "osc")
-    for key in ("scale", "gate_radius", "plan_obs"):
+    for key in ("scale", "gate_radius", "plan_obs", "penalty"):
         spec.pop(key, None)
     if base not in BASES:
         raise ValueError(f"residual.base must be one of {BASES}, got {base!r}")
@@ -85,10 +87,17 @@ def _combine(base_action: np.ndarray, residual: np.ndarray, weight) -> np.ndarra
     return np.clip(base_action + weight * np.asarray(residual), -1.0, 1.0).astype(np.float32)
 
 
-def _spec(spec: dict | None) -> tuple[float, float, bool]:
+class _Spec(NamedTuple):
+    scale: float
+    gate_radius: float
+    plan_obs: bool
+    penalty: float
+
+
+def _spec(spec: dict | None) -> _Spec:
     spec = dict(spec or {})
     scale, radius = float(spec.get("scale", 0.3)), float(spec.get("gate_radius", 5e-3))
-    plan_obs = spec.get("plan_obs", False)
+    plan_obs, penalty = spec.get("plan_obs", False), float(spec.get("penalty", 0.0))
     if not 0.0 < scale <= 2.0:
         raise ValueError(f"residual.scale must be in (0, 2], got {scale}")
     if not radius >= 0.0:
@@ -98,7 +107,17 @@ def _spec(spec: dict | None) -> tuple[float, float, bool]:
     if plan_obs and spec.get("base", "osc") != "pts":
         raise ValueError(f"residual.plan_obs needs base 'pts' (the only base with a plan), "
                          f"got base {spec.get('base', 'osc')!r}")
-    return scale, radius, plan_obs
+    if not 0.0 <= penalty < float("inf"):
+        raise ValueError(f"residual.penalty must be a finite number >= 0, got {penalty}")
+    return _Spec(scale, radius, plan_obs, penalty)
+
+
+def needs_plain_replay(spec: dict | None) -> bool:
+    """Whether a residual with this spec must not be trained with HER: ``plan_obs`` (the plan
+    belongs to the episode's goal) and ``penalty`` (a reward term that HER's
+    ``compute_reward`` does not know) both are."""
+    sp = _spec(spec)
+    return sp.plan_obs or sp.penalty > 0
 
 
 #: Travel (in control periods at full-scale speed) that ``plan_obs`` maps to tanh(1).
@@ -155,18 +174,22 @@ class ResidualVecEnv(VecEnvWrapper):
     updated with the keyword arguments (rl_zoo3 passes the wrapper's YAML mapping as keywords):
     ``base`` (``"pts"`` or ``"osc"``, default ``"osc"``), ``scale`` (default 0.3),
     ``gate_radius`` [m] (default 5e-3; 0 = no gate), ``plan_obs`` (default false: see the
-    module's docstring) and the base controller's keyword arguments (``time_constant``, ...
-    for pts; ``gain``, ``damping``, ``max_step`` for osc).
+    module's docstring), ``penalty`` (default 0: the training reward loses ``penalty *
+    mean(a^2)`` per step, so the residual stays 0 where it does not pay for itself; evaluation
+    metrics do not depend on it) and the base controller's keyword arguments
+    (``time_constant``, ... for pts; ``gain``, ``damping``, ``max_step`` for osc).
     """
 
     def __init__(self, venv, spec: dict | None = None, **fields):
         spec = {**dict(spec or {}), **fields}
-        scale, radius, plan_obs = _spec(spec)
+        sp = _spec(spec)
         space = (plan_observation_space(venv.observation_space, venv.action_space.shape[0])
-                 if plan_obs else None)
+                 if sp.plan_obs else None)
         super().__init__(venv, observation_space=space)
         self.residual_spec = spec
-        self.scale, self.gate_radius, self.plan_obs = scale, radius, plan_obs
+        self.scale, self.gate_radius, self.plan_obs = sp.scale, sp.gate_radius, sp.plan_obs
+        self.penalty = sp.penalty
+        self._penalties = None
         self.base = make_base(venv, spec)
         self._obs = None
         self._x = None    # (B, 2N) the actuation the agent last observed
@@ -192,10 +215,14 @@ class ResidualVecEnv(VecEnvWrapper):
 
     def step_async(self, actions: np.ndarray) -> None:
         weight = self.scale * _gate(self.venv, self.gate_radius)
+        a = np.clip(np.asarray(actions, np.float64), -1.0, 1.0)
+        self._penalties = self.penalty * np.mean(a ** 2, -1)
         self.venv.step_async(_combine(self.base(self._obs), actions, weight))
 
     def step_wait(self):
         obs, rewards, dones, infos = self.venv.step_wait()
+        if self.penalty > 0:
+            rewards = rewards - self._penalties
         if self.plan_obs:   # the episode's last observation (SB3 keeps it for bootstrapping)
             for i in np.flatnonzero(dones):
                 term = infos[i].get("terminal_observation")
@@ -209,12 +236,12 @@ def residual_policy(model_predict, venv, spec: dict):
     (``obs`` as ``venv`` returns it: the plan is appended here when ``spec`` has
     ``plan_obs``)."""
     base = make_base(venv, spec)
-    scale, radius, plan_obs = _spec(spec)
+    sp = _spec(spec)
 
     def policy(obs):
         a_base = base(obs)
-        seen = _with_plan(obs, base, venv) if plan_obs else obs
-        return _combine(a_base, model_predict(seen), scale * _gate(venv, radius))
+        seen = _with_plan(obs, base, venv) if sp.plan_obs else obs
+        return _combine(a_base, model_predict(seen), sp.scale * _gate(venv, sp.gate_radius))
     return policy
 
 

@@ -186,12 +186,16 @@ def make_model(algo: str, hp: dict, venv, seed: int, log_dir: Path | None):
         from stable_baselines3 import HerReplayBuffer
         kw["replay_buffer_class"] = HerReplayBuffer if rb == "HerReplayBuffer" else _import(rb)
     if getattr(kw.get("replay_buffer_class"), "__name__", "") == "HerReplayBuffer":
-        if (residual_spec(hp) or {}).get("plan_obs"):
-            raise ValueError(
-                "residual plan_obs with HerReplayBuffer: the plan in the observation belongs "
-                "to the episode's goal, and HER would pair it with other goals; use a plain "
-                "replay buffer (--hyperparams replay_buffer_class:"
-                "stable_baselines3.common.buffers.DictReplayBuffer replay_buffer_kwargs:None)")
+        res = residual_spec(hp)
+        if res is not None:
+            from .residual import needs_plain_replay
+            if needs_plain_replay(res):
+                raise ValueError(
+                    "residual plan_obs or penalty with HerReplayBuffer: the plan in the "
+                    "observation belongs to the episode's goal and HER's compute_reward does "
+                    "not know the penalty; use a plain replay buffer (--hyperparams "
+                    "replay_buffer_class:stable_baselines3.common.buffers.DictReplayBuffer "
+                    "replay_buffer_kwargs:None)")
         # HER samples only from finished episodes: SB3 fails mid-run otherwise.
         steps = int(getattr(venv, "max_episode_steps", 0) or 0)
         need = venv.num_envs * steps

@@ -122,12 +122,35 @@ def test_plan_obs_with_her_is_refused_by_name():
     hp = train.load_hyperparams("tqc", ENV)          # the HER entry
     hp["vec_env_wrapper"] = [{"training.residual.ResidualVecEnv": dict(SPEC)}]
     venv = train.make_venv(ENV, hp, n_envs=2)
-    with pytest.raises(ValueError, match="plan_obs with HerReplayBuffer"):
+    with pytest.raises(ValueError, match="plan_obs or penalty with HerReplayBuffer"):
         train.make_model("tqc", hp, venv, seed=0, log_dir=None)
     with pytest.raises(ValueError, match="plan_obs needs base 'pts'"):
         ResidualVecEnv(envs.CTRReachVecEnv(1), {"base": "osc", "plan_obs": True})
     with pytest.raises(ValueError, match="plan_obs must be true or false"):
         ResidualVecEnv(envs.CTRReachVecEnv(1), {"base": "pts", "plan_obs": "yes"})
+    hp["vec_env_wrapper"] = [{"training.residual.ResidualVecEnv": {"base": "pts",
+                                                                   "penalty": 0.5}}]
+    with pytest.raises(ValueError, match="plan_obs or penalty with HerReplayBuffer"):
+        train.make_model("tqc", hp, train.make_venv(ENV, hp, n_envs=2), seed=0, log_dir=None)
+    with pytest.raises(ValueError, match="residual.penalty must be a finite number >= 0"):
+        ResidualVecEnv(envs.CTRReachVecEnv(1), {"base": "pts", "penalty": -1.0})
+
+
+def test_the_penalty_charges_the_residual_not_the_base():
+    """penalty p: the training reward loses p * mean(a^2) of the agent's action a, and only
+    that (same seeds and actions with p = 0: same robots, rewards differing by exactly it)."""
+    a = np.array([[0.5, -1.0, 0.0, 0.2], [0.0, 0.0, 0.0, 0.0]], np.float32)
+    out = {}
+    for p in (0.0, 0.7):
+        env = ResidualVecEnv(envs.CTRReachVecEnv(2, max_episode_steps=20),
+                             {"base": "pts", "table_size": TABLE, "penalty": p})
+        env.seed(4)
+        env.reset()
+        _, r, _, _ = env.step(a)
+        out[p] = (r, env.venv.task.robots.x.copy())
+    np.testing.assert_array_equal(out[0.0][1], out[0.7][1])
+    np.testing.assert_allclose(out[0.0][0] - out[0.7][0],
+                               0.7 * np.array([(0.25 + 1 + 0.04) / 4, 0.0]), atol=1e-7)
 
 
 def test_a_plan_obs_run_reloads_with_its_plan_features(tmp_path):
