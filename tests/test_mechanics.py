@@ -33,7 +33,7 @@ def test_analytic_derivatives_match_autograd(order, scene_name):
     tab = disc.tables(dt, torch.device("cpu"))
     nq = n_coordinates(2, disc.n_basis)
     maps = build_maps(lay, tab, nq)
-    m = lay["qmask"]
+    m = lay.qmask
     q = torch.randn(B, nq, dtype=dt) * 5 * m
     g, H = elastic_grad_hess(q, maps)
 

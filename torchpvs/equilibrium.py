@@ -149,11 +149,11 @@ class Equilibrium:
         (kept in ``_ctx["resolve"]`` for :mod:`torchpvs.jacobians`)."""
         q, lay, tab, H = res["q"], res["lay"], res["tab"], res["H"]
         B = q.shape[0]
-        qmask = lay["qmask"]
+        qmask = lay.qmask
         with torch.no_grad():
             # Angles at section ends do not depend on the evaluation points: one point will do.
             f = node_fields(q, lay, tab["xq"][:1], tab["phi_q"][:1], tab["Q_q"][:1])
-            psi_l1 = f["psi0"] + (f["inc"] * lay["before_l1"][..., None]).sum(-2)
+            psi_l1 = f["psi0"] + (f["inc"] * lay.before_l1[..., None]).sum(-2)
             rel = _wrap(psi_l1[:, 1:] - psi_l1[:, :1])
             # Stability on the nondimensional stiffness (see min_stiffness_eigenvalue): positive
             # definite beyond a threshold set by the precision alone -- one Cholesky; the
@@ -164,7 +164,7 @@ class Equilibrium:
             dofs = qmask.sum(-1).long()
             energy = elastic_energy_maps(q, res["maps"])
             if res["with_load"]:
-                energy = energy - (lay["force"] * res["tip"]).sum(-1)
+                energy = energy - (lay.force * res["tip"]).sum(-1)
         forces = torques = insert_side = None
         kink = torch.zeros_like(res["D"], dtype=torch.bool)
         paper = opts.compute_forces and getattr(opts, "force_model", "energy") == "paper"
@@ -212,14 +212,14 @@ class Equilibrium:
         m = self._ctx["disc"].n_magnus
         with torch.no_grad():
             poses, _ = section_start_poses(q, lay, tab)                  # (B, S+1, 4, 4)
-            s_tip = lay["s_tip"]
+            s_tip = lay.s_tip
             frac = torch.linspace(0.0, 1.0, points, dtype=q.dtype, device=q.device)
             s = s_tip[:, None] * frac                                     # (B, K)
-            ends = lay["start"] + lay["h"]
+            ends = lay.start + lay.h
             k = torch.searchsorted(ends.contiguous(), s.contiguous(), right=False)
-            k = k.clamp(max=lay["h"].shape[-1] - 1)
-            start = torch.gather(lay["start"], 1, k)
-            h = torch.gather(lay["h"], 1, k)
+            k = k.clamp(max=lay.h.shape[-1] - 1)
+            start = torch.gather(lay.start, 1, k)
+            h = torch.gather(lay.h, 1, k)
             x = (s - start).clamp(min=0.0)
             # Gauss points of m equal Magnus steps over [0, x], in section coordinates.
             centers = (torch.arange(m, dtype=q.dtype, device=q.device) + 0.5) / m
@@ -227,7 +227,7 @@ class Equilibrium:
             loc = torch.stack([centers - off, centers + off], -1).reshape(-1)   # (2m,) in [0,1]
             hs = h.clamp(min=1e-300)
             xi = -1.0 + 2.0 * (x[..., None] * loc) / hs[..., None]             # (B, K, 2m)
-            xi_all = xi.reshape(B, 1, -1).expand(B, lay["h"].shape[-1], -1)   # (B, S, K*2m)
+            xi_all = xi.reshape(B, 1, -1).expand(B, lay.h.shape[-1], -1)   # (B, S, K*2m)
             from .basis import legendre_basis
             phi, Qb = legendre_basis(xi_all, self._ctx["disc"].n_basis)
             f = node_fields(q, lay, xi_all, phi, Qb)

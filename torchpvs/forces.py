@@ -101,17 +101,17 @@ def paper_actuation(tubes, res, tol: float = 1e-12):
         f = node_fields(q, lay, x_all, phi, Qb)
         Ru, dpsi, psi = f["Ru"], f["dpsi"], f["psi"]                  # (B, S, G+2, ...)
         G = xg.shape[0]
-        present = lay["present"] > 0.5                                 # (B, S, N)
+        present = lay.present > 0.5                                 # (B, S, N)
         # Unloaded: the internal moment vanishes on the whole free part, so the bending is the
         # stiffness-weighted average of the rotated precurvatures (the closure of the exact
         # solution; more accurate at the section ends than the bending polynomial itself).
-        EIp = lay["EI"][:, None, None, :] * present[:, :, None, :]
+        EIp = lay.EI[:, None, None, :] * present[:, :, None, :]
         u = (EIp[..., None] * Ru).sum(-2) / EIp.sum(-1, keepdim=True).clamp(min=1e-300)
         S = present.shape[1]
         first = present[..., 0].float().argmax(-1)                     # first free section
         ar = torch.arange(B, device=q.device)
         u0 = u[ar, first, G]                                            # (B, 2) at s = 0+
-        m0 = (lay["EI"][:, :, None] * (u0[:, None, :] - Ru[ar, first, G])
+        m0 = (lay.EI[:, :, None] * (u0[:, None, :] - Ru[ar, first, G])
               * present[ar, first][..., None]).sum(1)                  # (B, 2) total moment
         k_m0 = (u0 * m0).sum(-1)
         forces = torch.zeros(B, N, dtype=q.dtype, device=q.device)
@@ -126,7 +126,7 @@ def paper_actuation(tubes, res, tol: float = 1e-12):
         P = coef.shape[-1]
         dcoef = coef[:, 1, :, 1:] * torch.arange(1, P, dtype=q.dtype, device=q.device) \
             if P > 1 else torch.zeros_like(coef[:, 1, :, :1])
-        t = f["s"][..., :G] - lay["tau"][:, None, None, 1]            # (B, S, G)
+        t = f["s"][..., :G] - lay.tau[:, None, None, 1]            # (B, S, G)
         dk = poly(dcoef[:, None, None, None], t[..., None])[..., 0, :2]   # (B, S, G, 2)
         c, sn = torch.cos(psi[..., :G, 1]), torch.sin(psi[..., :G, 1])
         Rdk = torch.stack([c * dk[..., 0] - sn * dk[..., 1], sn * dk[..., 0] + c * dk[..., 1]],
@@ -135,7 +135,7 @@ def paper_actuation(tubes, res, tol: float = 1e-12):
         JR2 = torch.stack([-R2[..., 1], R2[..., 0]], -1)
         dens = dpsi[..., :G, 1] * (ug * JR2).sum(-1) + (ug * Rdk).sum(-1)   # (B, S, G)
         cross = ug[..., 0] * R2[..., 1] - ug[..., 1] * R2[..., 0]
-        w = 0.5 * lay["h"][..., None] * wg * ov[..., None]
+        w = 0.5 * lay.h[..., None] * wg * ov[..., None]
         integral = (dens * w).sum((-1, -2))
         tors = (cross * w).sum((-1, -2))
         # beyond the outer tube's end: the inner tube alone (strain = precurvature if unloaded)
@@ -143,7 +143,7 @@ def paper_actuation(tubes, res, tol: float = 1e-12):
         after = present[ar, nxt, 1] & ~present[ar, nxt, 0] & (last + 1 < S)
         ua, Ra = u[ar, nxt, G], Ru[ar, nxt, G, 1]
         tail = torch.where(after, (ua * (ua - Ra)).sum(-1), torch.zeros_like(integral))
-        EI2 = lay["EI"][:, 1]
+        EI2 = lay.EI[:, 1]
         tau_D2 = EI2 * (0.5 * (u0**2).sum(-1) - 0.5 * (u_end**2).sum(-1) + integral + tail)
         forces[:, 1] = tau_D2
         forces[:, 0] = k_m0 - tau_D2

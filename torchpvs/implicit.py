@@ -146,7 +146,7 @@ def _rotation_jacobian(q_star, info, D, alpha, F, M, EI, GJ, L, Ls, coef) -> tor
         return skew_vee(R @ R0.transpose(-1, -2))
 
     q = q_star.detach()
-    lay = {k: v.detach() for k, v in lay.items()}
+    lay = type(lay)(*(v.detach() for v in lay))
     return torch.func.vmap(torch.func.jacrev(rotvec))(q, lay, q)
 
 
@@ -171,7 +171,7 @@ def differentiable_outputs(q_star: torch.Tensor, info: dict, D, alpha, F, M,
     energy = potential(q, lay, tab, None, info["with_load"])
     tau_D, tau_A = torch.autograd.grad(U.sum(), (dD, dA), create_graph=True)
     f = node_fields(q, lay, tab["xq"], tab["phi_q"], tab["Q_q"])
-    psi_l1 = f["psi0"] + (f["inc"] * lay["before_l1"][..., None]).sum(-2)
+    psi_l1 = f["psi0"] + (f["inc"] * lay.before_l1[..., None]).sum(-2)
     rel = psi_l1[:, 1:] - psi_l1[:, :1]
     return {"q": q, "tip": p, "R": R, "energy": energy, "forces": tau_D, "torques": tau_A,
             "rel_unwrapped": rel}

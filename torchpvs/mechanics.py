@@ -16,9 +16,14 @@ and per element under ``torch.func.vmap`` (for exact Hessians).
 
 from __future__ import annotations
 
+from typing import TYPE_CHECKING
+
 import torch
 
 from .lie import magnus4_step, rot_z
+
+if TYPE_CHECKING:
+    from .sections import Layout
 
 __all__ = ["elastic_energy", "node_fields", "potential", "section_start_poses", "tip_pose"]
 
@@ -41,18 +46,18 @@ def _poly_int(coef: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
     return out
 
 
-def split_q(q: torch.Tensor, lay: dict[str, torch.Tensor]):
+def split_q(q: torch.Tensor, lay: Layout):
     """``q (..., nq)`` -> guide twists ``w (..., N)``, bending ``a (..., S, 2, n)``,
     torsion ``c (..., S, N, n)``; inactive coordinates are zeroed by the mask."""
-    N = lay["EI"].shape[-1]
-    S = lay["h"].shape[-1]
-    q = q * lay["qmask"]
+    N = lay.EI.shape[-1]
+    S = lay.h.shape[-1]
+    q = q * lay.qmask
     w = q[..., :N]
     X = q[..., N:].reshape(q.shape[:-1] + (S, 2 + N, -1))
     return w, X[..., :2, :], X[..., 2:, :]
 
 
-def node_fields(q: torch.Tensor, lay: dict[str, torch.Tensor], xi: torch.Tensor,
+def node_fields(q: torch.Tensor, lay: Layout, xi: torch.Tensor,
                 phi: torch.Tensor, Qb: torch.Tensor) -> dict[str, torch.Tensor]:
     """Strains and angles at normalized points ``xi (G,)`` of every section.
 
@@ -62,25 +67,25 @@ def node_fields(q: torch.Tensor, lay: dict[str, torch.Tensor], xi: torch.Tensor,
     section the angle increments ``inc (..., S, N)`` and start angles ``psi_start``.
     """
     w, a, c = split_q(q, lay)
-    h, start = lay["h"], lay["start"]
-    present, curved, presc = lay["present"], lay["curved"], lay["presc"]
+    h, start = lay.h, lay.start
+    present, curved, presc = lay.present, lay.curved, lay.presc
     s = start[..., None] + 0.5 * (xi + 1.0) * h[..., None]                 # (..., S, G)
-    t = s[..., None] - lay["tau"][..., None, None, :]                      # (..., S, G, N)
-    coef = lay["coef"][..., None, None, :, :, :]                           # (..., 1, 1, N, 3, P)
+    t = s[..., None] - lay.tau[..., None, None, :]                      # (..., S, G, N)
+    coef = lay.coef[..., None, None, :, :, :]                           # (..., 1, 1, N, 3, P)
     ustar = poly(coef, t) * curved[..., None, :, None]
     # phi/Qb are (G, n) or (..., S, G, n): matmul broadcasts over both.
     u = (a @ phi.transpose(-1, -2)).transpose(-1, -2)                    # (..., S, G, 2)
     dpsi = (c @ phi.transpose(-1, -2)).transpose(-1, -2)                 # (..., S, G, N)
     # Prescribed sections: strain = precurvature (twist u*_z integrated exactly).
-    zc = lay["coef"][..., 2, :][..., None, :, :]                           # (..., 1, N, P)
-    t0 = start[..., None] - lay["tau"][..., None, :]                       # (..., S, N)
+    zc = lay.coef[..., 2, :][..., None, :, :]                           # (..., 1, N, P)
+    t0 = start[..., None] - lay.tau[..., None, :]                       # (..., S, N)
     Z0 = _poly_int(zc, t0)
     pmask = curved * presc[..., None]                                      # (..., S, N)
     Zt = _poly_int(zc[..., None, :, :], t)
     presc_local = (Zt - Z0[..., None, :]) * pmask[..., None, :]
     presc_inc = (_poly_int(zc, t0 + h[..., None]) - Z0) * pmask
     inc = h[..., None] * c[..., 0] + presc_inc
-    psi0 = lay["psi0"] + lay["D"] * w
+    psi0 = lay.psi0 + lay.D * w
     psi_start = psi0[..., None, :] + torch.cumsum(inc, -2) - inc
     psi = (psi_start[..., None, :] + 0.5 * h[..., None, None] *
            (c @ Qb.transpose(-1, -2)).transpose(-1, -2) + presc_local)
@@ -93,18 +98,18 @@ def node_fields(q: torch.Tensor, lay: dict[str, torch.Tensor], xi: torch.Tensor,
             "psi_start": psi_start, "psi0": psi0}
 
 
-def elastic_energy(q: torch.Tensor, lay: dict[str, torch.Tensor],
+def elastic_energy(q: torch.Tensor, lay: Layout,
                    tab: dict[str, torch.Tensor]) -> torch.Tensor:
     """Stored elastic energy ``(...,)`` [J] of the whole robot, guide included."""
     f = node_fields(q, lay, tab["xq"], tab["phi_q"], tab["Q_q"])
-    EI, GJ = lay["EI"][..., None, None, :], lay["GJ"][..., None, None, :]
+    EI, GJ = lay.EI[..., None, None, :], lay.GJ[..., None, None, :]
     diff = f["u"][..., None, :] - f["Ru"]
     bend = 0.5 * EI * (diff**2).sum(-1)
     tors = 0.5 * GJ * (f["dpsi"] - f["ustar"][..., 2]) ** 2
-    dens = ((bend + tors) * lay["present"][..., None, :]).sum(-1)          # (..., S, Q)
+    dens = ((bend + tors) * lay.present[..., None, :]).sum(-1)          # (..., S, Q)
     w, _, _ = split_q(q, lay)
-    guide = (0.5 * lay["GJ"] * lay["D"] * w**2).sum(-1)
-    return (dens * lay["W"]).sum((-1, -2)) + guide + lay["guide_const"]
+    guide = (0.5 * lay.GJ * lay.D * w**2).sum(-1)
+    return (dens * lay.W).sum((-1, -2)) + guide + lay.guide_const
 
 
 def _twists(u: torch.Tensor) -> torch.Tensor:
@@ -114,7 +119,7 @@ def _twists(u: torch.Tensor) -> torch.Tensor:
     return torch.cat([u, zero, zero, zero, one], -1)
 
 
-def section_start_poses(q: torch.Tensor, lay: dict[str, torch.Tensor],
+def section_start_poses(q: torch.Tensor, lay: Layout,
                         tab: dict[str, torch.Tensor]) -> tuple[torch.Tensor, dict]:
     """Poses ``(..., S + 1, 4, 4)`` of the backbone frame at every cut (orifice first, tip last),
     by the 4th-order Magnus scheme with ``n_magnus`` steps per section."""
@@ -122,7 +127,7 @@ def section_start_poses(q: torch.Tensor, lay: dict[str, torch.Tensor],
     xi = _twists(f["u"])                                                   # (..., S, 2m, 6)
     m = xi.shape[-2] // 2
     xi = xi.reshape(xi.shape[:-2] + (m, 2, 6))
-    hs = (lay["h"] / m)[..., None].expand(xi.shape[:-2])
+    hs = (lay.h / m)[..., None].expand(xi.shape[:-2])
     steps = magnus4_step(xi[..., 0, :], xi[..., 1, :], hs)                  # (..., S, m, 4, 4)
     # Product of the m steps of every section by pairwise (tree) reduction: log2(m) batched
     # matmuls instead of m sequential ones (op count, not flops, bounds small batches).
@@ -150,13 +155,13 @@ def _ordered_product(mats: torch.Tensor) -> torch.Tensor:
     return mats[..., 0, :, :]
 
 
-def tip_pose(q: torch.Tensor, lay: dict[str, torch.Tensor], tab: dict[str, torch.Tensor]):
+def tip_pose(q: torch.Tensor, lay: Layout, tab: dict[str, torch.Tensor]):
     """Tip position ``(..., 3)`` and the material frame ``(..., 3, 3)`` of the tube forming the
     tip (base frame), plus the tube angles at the tip ``(..., N)``."""
     poses, f = section_start_poses(q, lay, tab)
     g = poses[..., -1, :, :]
     psi_tip = f["psi0"] + f["inc"].sum(-2)                                  # (..., N)
-    angle = (psi_tip * lay["tip_tube"]).sum(-1)
+    angle = (psi_tip * lay.tip_tube).sum(-1)
     R = g[..., :3, :3] @ rot_z(angle)
     return g[..., :3, 3], R, psi_tip
 
@@ -167,7 +172,7 @@ def skew_vee(A: torch.Tensor) -> torch.Tensor:
                               A[..., 1, 0] - A[..., 0, 1]], -1)
 
 
-def potential(q: torch.Tensor, lay: dict[str, torch.Tensor], tab: dict[str, torch.Tensor],
+def potential(q: torch.Tensor, lay: Layout, tab: dict[str, torch.Tensor],
               ref_rotation: torch.Tensor | None = None, with_load: bool = True) -> torch.Tensor:
     """Total potential ``(...,)`` [J]: elastic energy minus the work of the tip load.
 
@@ -183,9 +188,9 @@ def potential(q: torch.Tensor, lay: dict[str, torch.Tensor], tab: dict[str, torc
     if not with_load:
         return U
     p, R, _ = tip_pose(q, lay, tab)
-    work = (lay["force"] * p).sum(-1)
+    work = (lay.force * p).sum(-1)
     if ref_rotation is not None:
-        work = work + (lay["moment"] * skew_vee(R @ ref_rotation.transpose(-1, -2))).sum(-1)
+        work = work + (lay.moment * skew_vee(R @ ref_rotation.transpose(-1, -2))).sum(-1)
     return U - work
 
 
@@ -206,46 +211,46 @@ def potential(q: torch.Tensor, lay: dict[str, torch.Tensor], tab: dict[str, torc
 # node-by-coordinate map is ever formed (memory traffic, not flops, bounds large batches). The
 # u-u and psi'-psi' blocks do not depend on q and are assembled once per solve.
 
-def angle_bases(lay: dict[str, torch.Tensor], nq: int) -> torch.Tensor:
+def angle_bases(lay: Layout, nq: int) -> torch.Tensor:
     """``b_kj = d(psi_j at the start of section k)/dq``: ``(B, S, N, nq)``, i.e. ``D_j`` on the
     guide twist ``w_j`` and ``h_k'`` on the mean torsion ``c_{k',j,0}`` of every earlier section."""
-    h = lay["h"].detach()
+    h = lay.h.detach()
     B, S = h.shape
-    N = lay["EI"].shape[-1]
+    N = lay.EI.shape[-1]
     n = (nq - N) // (S * (2 + N))
     dtype, device = h.dtype, h.device
-    qmask = lay["qmask"].detach()
+    qmask = lay.qmask.detach()
     lower = torch.tril(torch.ones(S, S, dtype=dtype, device=device), -1)
     eyeN = torch.eye(N, dtype=dtype, device=device)
     X = torch.zeros(B, S, N, S, 2 + N, n, dtype=dtype, device=device)
     X[..., 2:, 0] = torch.einsum("kl,bl,je->bkjle", lower, h, eyeN)
-    w = (lay["D"].detach()[:, None, None, :] * eyeN).expand(B, S, N, N)
+    w = (lay.D.detach()[:, None, None, :] * eyeN).expand(B, S, N, N)
     b = torch.cat([w, X.reshape(B, S, N, -1)], -1)
     return b * qmask[:, None, None, :]
 
 
-def build_maps(lay: dict[str, torch.Tensor], tab: dict[str, torch.Tensor],
+def build_maps(lay: Layout, tab: dict[str, torch.Tensor],
                nq: int) -> dict[str, torch.Tensor]:
     """Everything the fast energy/gradient/Hessian needs that does not change with ``q``."""
-    h = lay["h"].detach()
+    h = lay.h.detach()
     B, S = h.shape
-    N = lay["EI"].shape[-1]
+    N = lay.EI.shape[-1]
     phi = tab["phi_q"]
     Q, n = phi.shape
     C = 2 + N
     dtype, device = h.dtype, h.device
-    qmask = lay["qmask"].detach()
+    qmask = lay.qmask.detach()
     with torch.no_grad():
         ustar = node_fields(torch.zeros(B, nq, dtype=dtype, device=device), lay,
                             tab["xq"], phi, tab["Q_q"])["ustar"]
-    W = lay["W"].detach()                                                   # (B, S, Q)
-    Pn = lay["present"].detach()[:, :, None, :].expand(B, S, Q, N)
-    EIp = lay["EI"].detach()[:, None, None, :] * Pn
-    GJp = lay["GJ"].detach()[:, None, None, :] * Pn
+    W = lay.W.detach()                                                   # (B, S, Q)
+    Pn = lay.present.detach()[:, :, None, :].expand(B, S, Q, N)
+    EIp = lay.EI.detach()[:, None, None, :] * Pn
+    GJp = lay.GJ.detach()[:, None, None, :] * Pn
     A = torch.einsum("bsq,qp,qr->bspr", W * EIp.sum(-1), phi, phi)          # bending blocks
     T = torch.einsum("bsqj,qp,qr->bsjpr", W[..., None] * GJp, phi, phi)     # torsion blocks
     guide = torch.zeros(B, nq, dtype=dtype, device=device)
-    guide[:, :N] = lay["GJ"].detach() * lay["D"].detach() * qmask[:, :N]
+    guide[:, :N] = lay.GJ.detach() * lay.D.detach() * qmask[:, :N]
     H_const = torch.zeros(B, nq, nq, dtype=dtype, device=device)
     H_const.diagonal(dim1=-2, dim2=-1)[:, :N] = guide[:, :N]
     # Section-diagonal blocks written through strided views (no dense scatter): A (x) I_2 on the
@@ -255,8 +260,8 @@ def build_maps(lay: dict[str, torch.Tensor], tab: dict[str, torch.Tensor],
     cc[..., :2] = A.permute(0, 2, 3, 1)[..., None]
     cc[..., 2:] = T.permute(0, 3, 4, 1, 2)
     return {"ustar": ustar.detach(), "W": W, "EIp": EIp, "GJp": GJp, "H_const": H_const,
-            "guide": guide, "guide_const": lay["guide_const"].detach(), "h": h,
-            "qmask": qmask, "psi0": lay["psi0"].detach(), "bvec": angle_bases(lay, nq),
+            "guide": guide, "guide_const": lay.guide_const.detach(), "h": h,
+            "qmask": qmask, "psi0": lay.psi0.detach(), "bvec": angle_bases(lay, nq),
             "phi": phi, "Qb": tab["Q_q"], **_node_tables(phi, tab["Q_q"])}
 
 

@@ -55,7 +55,7 @@ _SHARED = ("phi", "Qb", "values_T", "Q_QQ", "phi_PQ")   # maps entries without a
 
 def subset(prob: Problem, idx: torch.Tensor, merit_only: bool = False) -> Problem:
     """The problem restricted to batch rows ``idx`` (the merit needs no Hessian constants)."""
-    lay = {k: v[idx] for k, v in prob.lay.items()}
+    lay = type(prob.lay)(*(v[idx] for v in prob.lay))
     maps = {k: (v if k in _SHARED else v[idx]) for k, v in prob.maps.items()
             if not (merit_only and k == "H_const")}
     return prob._replace(lay=lay, maps=maps)
@@ -106,11 +106,11 @@ def derivatives(q: torch.Tensor, prob: Problem):
 def _load_hessian(tab, has_moment: bool):
     def load_only(q, lay, q_ref):
         p, R, _ = tip_pose(q, lay, tab)
-        work = (lay["force"] * p).sum(-1)
+        work = (lay.force * p).sum(-1)
         if has_moment:
             with torch.no_grad():
                 _, R0, _ = tip_pose(q_ref, lay, tab)
-            work = work + (lay["moment"] * skew_vee(R @ R0.transpose(-1, -2))).sum(-1)
+            work = work + (lay.moment * skew_vee(R @ R0.transpose(-1, -2))).sum(-1)
         return -work
 
     def grad_and_grad(q, lay, q_ref):
@@ -127,10 +127,10 @@ def merit(q: torch.Tensor, prob: Problem, q_ref: torch.Tensor) -> torch.Tensor:
     if prob.with_load:
         lay, tab = prob.lay, prob.tab
         p, R, _ = tip_pose(q, lay, tab)
-        U = U - (lay["force"] * p).sum(-1)
+        U = U - (lay.force * p).sum(-1)
         if prob.has_moment:
             _, R0, _ = tip_pose(q_ref, lay, tab)
-            U = U - (lay["moment"] * skew_vee(R @ R0.transpose(-1, -2))).sum(-1)
+            U = U - (lay.moment * skew_vee(R @ R0.transpose(-1, -2))).sum(-1)
     return U
 
 
@@ -201,9 +201,9 @@ def _newton(q: torch.Tensor, prob: Problem, L_char: torch.Tensor, *, method: str
     lam = torch.zeros(B, dtype=dtype, device=device)
     tested = torch.zeros(B, dtype=torch.bool, device=device)   # passed the saddle test
     escapes = 0
-    act = active_index(prob.lay["qmask"])
+    act = active_index(prob.lay.qmask)
     for _ in range(max_iter + 1):
-        qmask = sub.lay["qmask"]
+        qmask = sub.lay.qmask
         g, H = derivatives(q, sub)
         H.diagonal(dim1=-2, dim2=-1).add_(1.0 - qmask)
         res, scale = scaled_residual(g, H, Lc)
@@ -235,7 +235,7 @@ def _newton(q: torch.Tensor, prob: Problem, L_char: torch.Tensor, *, method: str
                                                     (idx, q, g, H, scale, lam, tested, Lc))
             sub = subset(sub, keep)
             todo = torch.ones_like(lam, dtype=torch.bool)
-            qmask = sub.lay["qmask"]
+            qmask = sub.lay.qmask
             act = active_index(qmask)
         Hs, sc = compact_scaled(H, scale, act)
         gs = sc * torch.gather(g, 1, act)
@@ -286,7 +286,7 @@ def _saddle_test(q, H, g, scale, new, prob: Problem, L_char, act):
         return q, left
     sel, v = sel[neg], expand(vec[neg][:, :, 0] * sc[neg], a[neg], q.shape[-1])
     sub = subset(prob, sel, merit_only=True)
-    v = v * sub.lay["qmask"]
+    v = v * sub.lay.qmask
     sign = torch.where((g[sel] * v).sum(-1) > 0, -1.0, 1.0).to(v.dtype)
     v = sign[:, None] * v / (v.abs().amax(-1, keepdim=True) * L_char[sel, None]).clamp(min=1e-30)
     q0 = q[sel]

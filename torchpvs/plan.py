@@ -84,18 +84,16 @@ class Plan:
         if (not grad and memo is not None and memo.tubes is tubes
                 and memo.D.shape == D.shape and torch.equal(memo.D, D)
                 and torch.equal(memo.loaded, loaded)):
-            lay = dict(memo.lay)
             # psi0 = alpha + (twist of the curved material held in the guide).
-            lay["psi0"] = memo.psi0_guide + A
-            lay["alpha"], lay["force"], lay["moment"] = A, F, M
+            lay = memo.lay._replace(psi0=memo.psi0_guide + A, alpha=A, force=F, moment=M)
             maps = dict(memo.maps)
-            maps["psi0"] = lay["psi0"]
+            maps["psi0"] = lay.psi0
             return lay, maps
         lay = build_layout(tubes, D, A, F, M, loaded, disc)
         maps = build_maps(lay, disc.tables(D.dtype, D.device), nq)
         if not grad:
             self._memo[key] = _Memo(D.clone(), loaded.clone(), disc, tubes,
-                                     lay["psi0"] - A, lay, maps)
+                                     lay.psi0 - A, lay, maps)
             if len(self._memo) > 4:
                 self._memo.pop(next(iter(self._memo)))
         return lay, maps

@@ -24,12 +24,13 @@ from __future__ import annotations
 
 import functools
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import torch
 
 from .basis import gauss_legendre, legendre_basis
 
-__all__ = ["Discretization", "TubeTensors", "build_layout", "n_coordinates"]
+__all__ = ["Discretization", "Layout", "TubeTensors", "build_layout", "n_coordinates"]
 
 
 @dataclass(frozen=True)
@@ -92,9 +93,53 @@ def _poly_antiderivative_value(coef: torch.Tensor, t: torch.Tensor) -> torch.Ten
     return out
 
 
+class Layout(NamedTuple):
+    """Sections, masks and fixed quantities of a batch at given insertions (every field has the
+    leading batch dim ``B``, so a layout can be indexed, detached or ``vmap``-ed as a whole;
+    ``S = 2N`` section slots, some of them empty; masks are float 0/1).
+
+    ``EI``, ``GJ`` ``(B, N)`` [N·m²] stiffnesses; ``D``, ``alpha`` ``(B, N)`` [m, rad] the
+    actuation; ``coef`` ``(B, N, 3, P)`` precurvature polynomials [1/m] in the arc length from
+    the transition; ``tau`` ``(B, N)`` [m] transition positions on the backbone (``Ls - D``);
+    ``ell`` ``(B, N)`` [m] exposed lengths; ``start``, ``h`` ``(B, S)`` [m] section starts and
+    lengths; ``present``, ``curved`` ``(B, S, N)`` tube j in section s, and curved there;
+    ``active`` ``(B, S)`` sections with coordinates; ``presc`` ``(B, S)`` single-tube sections at
+    their precurvature (no coordinates); ``qmask`` ``(B, nq)`` active coordinates; ``psi0``
+    ``(B, N)`` [rad] tube angles at the orifice; ``guide_const`` ``(B,)`` [J] bending energy
+    stored in the guide; ``W`` ``(B, S, Q)`` [m] quadrature weights of the energy; ``force``,
+    ``moment`` ``(B, 3)`` [N, N·m] tip load (base frame); ``tip_tube`` ``(B, N)`` one-hot tube
+    forming the tip; ``s_tip`` ``(B,)`` [m] tip arc length; ``before_l1`` ``(B, S)`` sections
+    ending at or before the outer tube's end; ``loaded`` ``(B,)`` nonzero tip load.
+    """
+
+    EI: torch.Tensor
+    GJ: torch.Tensor
+    D: torch.Tensor
+    alpha: torch.Tensor
+    coef: torch.Tensor
+    tau: torch.Tensor
+    ell: torch.Tensor
+    start: torch.Tensor
+    h: torch.Tensor
+    present: torch.Tensor
+    curved: torch.Tensor
+    active: torch.Tensor
+    presc: torch.Tensor
+    qmask: torch.Tensor
+    psi0: torch.Tensor
+    guide_const: torch.Tensor
+    W: torch.Tensor
+    force: torch.Tensor
+    moment: torch.Tensor
+    tip_tube: torch.Tensor
+    s_tip: torch.Tensor
+    before_l1: torch.Tensor
+    loaded: torch.Tensor
+
+
 def build_layout(tubes: TubeTensors, D: torch.Tensor, alpha: torch.Tensor,
                  force: torch.Tensor, moment: torch.Tensor, loaded: torch.Tensor,
-                 disc: Discretization, *, min_section: float = 1e-12) -> dict[str, torch.Tensor]:
+                 disc: Discretization, *, min_section: float = 1e-12) -> Layout:
     """Sections, masks and fixed quantities for a batch.
 
     Args:
@@ -105,8 +150,8 @@ def build_layout(tubes: TubeTensors, D: torch.Tensor, alpha: torch.Tensor,
         disc: the discretization.
         min_section: sections shorter than this [m] get no coordinates.
 
-    Returns a dict of tensors with leading dim ``B`` (so it can be ``vmap``-ed): see the keys
-    below; everything is differentiable w.r.t. ``D``, ``alpha`` and the tube tensors.
+    Returns the :class:`Layout`; everything is differentiable w.r.t. ``D``, ``alpha`` and the
+    tube tensors.
     """
     B, N = D.shape
     dtype, device = D.dtype, D.device
@@ -163,14 +208,11 @@ def build_layout(tubes: TubeTensors, D: torch.Tensor, alpha: torch.Tensor,
     before_l1 = (cuts.detach() <= ell.detach()[:, :1] + 1e-12).to(dtype)
 
     f = lambda m: m.to(dtype)  # noqa: E731 - masks as float for arithmetic
-    return {
-        "EI": EI, "GJ": GJ, "D": D, "alpha": alpha, "coef": coef, "tau": tau, "ell": ell,
-        "start": start, "h": h, "present": f(present), "curved": f(curved),
-        "active": f(active), "presc": f(presc), "qmask": f(qmask), "psi0": psi0,
-        "guide_const": guide_const, "W": W, "force": force, "moment": moment,
-        "tip_tube": tip_tube, "s_tip": s_tip, "before_l1": before_l1,
-        "loaded": f(loaded),
-    }
+    return Layout(EI=EI, GJ=GJ, D=D, alpha=alpha, coef=coef, tau=tau, ell=ell, start=start, h=h,
+                  present=f(present), curved=f(curved), active=f(active), presc=f(presc),
+                  qmask=f(qmask), psi0=psi0, guide_const=guide_const, W=W, force=force,
+                  moment=moment, tip_tube=tip_tube, s_tip=s_tip, before_l1=before_l1,
+                  loaded=f(loaded))
 
 
 def _poly_eval(coef: torch.Tensor, t: torch.Tensor) -> torch.Tensor:

@@ -314,7 +314,7 @@ def solve_tensors(scene: Scene, tubes: TubeTensors, D, A, F, M, opts: SolverOpti
         res = _refine_magnus(scene, tubes, D, A, F, M, res, opts, plan, work)
     res["work_exhausted"] = work.exhausted
     diff = None
-    info = {"H": res["H"], "qmask": res["lay"]["qmask"], "ridge": opts.backward_ridge,
+    info = {"H": res["H"], "qmask": res["lay"].qmask, "ridge": opts.backward_ridge,
             "singular_tol": opts.singular_tol, "loaded": res["loaded"], "disc": res["disc"],
             "tab": res["tab"], "with_load": res["with_load"], "has_moment": res["has_moment"]}
     res["implicit_info"] = info
@@ -334,8 +334,8 @@ def solve_tensors(scene: Scene, tubes: TubeTensors, D, A, F, M, opts: SolverOpti
         nq = q0.shape[-1]
         loaded = _loaded(Fn, Mn, opts)
         lay, maps = plan.layout(tubes, Dn, An, Fn, Mn, loaded, disc, nq)
-        q1 = q0 * lay["qmask"]
-        moved = (lay["qmask"] != res["lay"]["qmask"][sel]).any(-1).nonzero().flatten()
+        q1 = q0 * lay.qmask
+        moved = (lay.qmask != res["lay"].qmask[sel]).any(-1).nonzero().flatten()
         if moved.numel():
             prob = subset(Problem(lay, res["tab"], maps, res["with_load"], res["has_moment"]),
                            moved)
@@ -385,7 +385,7 @@ def _order_estimate(scene, tubes, D, A, F, M, res, opts: SolverOptions, plan: Pl
     lay, maps = plan.layout(tubes, D, A, F, M, res["loaded"], disc, nq)
     tab = disc.tables(D.dtype, D.device)
     prob = Problem(lay, tab, maps, res["with_load"], res["has_moment"])
-    q = _resize_q(res["q"], N, n_from, disc.n_basis) * lay["qmask"]
+    q = _resize_q(res["q"], N, n_from, disc.n_basis) * lay.qmask
     q1, ok = _newton_step(q, prob)
     tip1, _, _ = tip_pose(q1, lay, tab)
     est = (tip1 - res["tip"]).norm(dim=-1)
@@ -401,7 +401,7 @@ def _newton_step(q, prob: Problem):
 
 
 def _one_newton_step(q, prob: Problem):
-    qmask = prob.lay["qmask"]
+    qmask = prob.lay.qmask
     g, H = derivatives(q, prob)
     H.diagonal(dim1=-2, dim2=-1).add_(1.0 - qmask)
     _, scale = scaled_residual(g, H, torch.ones_like(g[:, 0]))
@@ -558,8 +558,8 @@ def _solve_order(scene, tubes, D, A, F, M, order, n_magnus, opts, q_init, plan: 
         q = _resize_q(q_init.to(dtype=dtype, device=device), N, n_from, disc.n_basis)
     else:
         q = _default_guess(lay, tab, disc, N)
-    q = q * lay["qmask"]
-    L_char = (lay["ell"].amax(-1) + D.amax(-1)).clamp(min=1e-6)           # (B,)
+    q = q * lay.qmask
+    L_char = (lay.ell.amax(-1) + D.amax(-1)).clamp(min=1e-6)           # (B,)
     prob = Problem(lay, tab, maps, with_load, has_moment)
     out = KERNELS[opts.kernel](q, prob, L_char, method=opts.method, tol=opts.tol,
                                max_iter=opts.max_iter)
@@ -576,11 +576,11 @@ def _default_guess(lay, tab, disc, N):
     stiffness-weighted average of the rotated precurvatures (exact without torsion, eq. 31)."""
     from .mechanics import node_fields
 
-    B = lay["h"].shape[0]
+    B = lay.h.shape[0]
     nq = n_coordinates(N, disc.n_basis)
-    q0 = torch.zeros(B, nq, dtype=lay["h"].dtype, device=lay["h"].device)
+    q0 = torch.zeros(B, nq, dtype=lay.h.dtype, device=lay.h.device)
     f = node_fields(q0, lay, tab["xq"], tab["phi_q"], tab["Q_q"])
-    EI = lay["EI"][:, None, None, :] * lay["present"][:, :, None, :]
+    EI = lay.EI[:, None, None, :] * lay.present[:, :, None, :]
     u_avg = (EI[..., None] * f["Ru"]).sum(-2) / EI.sum(-1, keepdim=True).clamp(min=1e-30)
     a = 0.5 * torch.einsum("bsgd,gp,g->bsdp", u_avg, tab["phi_q"], tab["wq"])
     X = torch.zeros(B, 2 * N, 2 + N, disc.n_basis, dtype=q0.dtype, device=q0.device)

@@ -50,7 +50,7 @@ def stationarity(eq, n_dirs: int = 3, seed: int = 0) -> float:
     if int(mask.sum()) == 0:
         return 0.0
     scale = H.diagonal(dim1=-2, dim2=-1).abs().clamp(min=1e-300) ** -0.5 * mask
-    L = float((lay["ell"].amax(-1) + ctx["D"].amax(-1)).clamp(min=1e-6)[0])
+    L = float((lay.ell.amax(-1) + ctx["D"].amax(-1)).clamp(min=1e-6)[0])
     R0 = eq.tip_rotation.detach()
     gen = torch.Generator().manual_seed(seed)
     worst = 0.0
