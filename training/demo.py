@@ -1,8 +1,8 @@
 """The README's main job: a torque-controlled reach with the shipped policy.
 
-    python -m training.demo [--policy training/policies/tqc_her_residual_pts.zip] [--goals 20]
+    python -m training.demo [--policy training/policies/tqc_residual_pts.zip] [--goals 20]
 
-Loads the shipped TQC+HER policy for the force/torque-action environment (the paper's Fig. 3
+Loads the shipped TQC policy for the force/torque-action environment (the paper's Fig. 3
 robot; a residual agent on the plan-then-servo controller, see ``training/residual.py``),
 evaluates it on seeded goals next to the model-based controllers (plan-then-servo and
 operational-space), prints the success rates and final errors, and saves
@@ -20,7 +20,7 @@ from pathlib import Path
 
 import numpy as np
 
-DEFAULT_POLICY = Path(__file__).resolve().parent / "policies" / "tqc_her_residual_pts.zip"
+DEFAULT_POLICY = Path(__file__).resolve().parent / "policies" / "tqc_residual_pts.zip"
 
 
 def _episodes(policy, venv, seed: int) -> dict[str, np.ndarray]:
@@ -118,8 +118,8 @@ def main(argv: list[str] | None = None) -> int:
         meta = Path(args.policy).with_suffix(".json")
         info = json.loads(meta.read_text()) if meta.exists() else {}
         residual, algo = info.get("residual"), str(info.get("algo", "agent")).upper()
-        label = (f"{algo}+HER residual on {residual.get('base', 'osc').upper()}" if residual
-                 else f"{algo}+HER (force actions)")
+        label = (f"{algo} residual on {residual.get('base', 'osc').upper()}" if residual
+                 else f"{algo} (force actions)")
         try:
             policies[label] = load_policy(args.policy, venv)
         except ValueError as e:  # e.g. trained on an older observation layout

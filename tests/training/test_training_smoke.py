@@ -322,7 +322,7 @@ def test_demo_runs_with_the_controllers(tmp_path, capsys):
     assert "plan-then-servo: success@1mm" in out
     assert "operational-space controller: success@1mm" in out
     # the shipped policy (training/policies/) loads on the current env and runs beside them
-    assert "cannot load" not in out and "TQC+HER residual on PTS: success@1mm" in out
+    assert "cannot load" not in out and "TQC residual on PTS: success@1mm" in out
     assert (tmp_path / "reach.png").stat().st_size > 10_000
 
 
