@@ -336,12 +336,17 @@ class PlanThenServoController:
         self._s[idx] = 0.0 if self.path_speed is not None else 1.0
 
     # -- acting -------------------------------------------------------------------------------
-    def __call__(self, obs) -> np.ndarray:
-        st = read_state(self.venv)
+    def replan(self, st) -> None:
+        """Plan the robots whose goal in ``st`` (an :class:`envs.task.RobotState`) changed since
+        their last plan (a reset, or a goal set by hand)."""
         changed = np.flatnonzero(np.any(st.goal != self._goal, -1))
         if len(changed):
             self.plan(changed, st)
             self._goal[changed] = st.goal[changed]
+
+    def __call__(self, obs) -> np.ndarray:
+        st = read_state(self.venv)
+        self.replan(st)
         b, h = st.damping, st.control_period
         xdot_ref = np.zeros_like(st.x)
         if self.path_speed is not None:

@@ -198,8 +198,8 @@ class ResidualVecEnv(VecEnvWrapper):
         self._obs = obs
         if not self.plan_obs:
             return obs
-        self.base(obs)    # plans for new goals now, so the plan is in what the agent sees
         st = read_state(self.venv)
+        self.base.replan(st)    # plans for new goals now, so the plan is in what the agent sees
         self._x = st.x.copy()
         return _append(obs, _plan_features(self.base.target, st.x, st))
 
@@ -215,8 +215,9 @@ class ResidualVecEnv(VecEnvWrapper):
 
     def step_async(self, actions: np.ndarray) -> None:
         weight = self.scale * _gate(self.venv, self.gate_radius)
-        a = np.clip(np.asarray(actions, np.float64), -1.0, 1.0)
-        self._penalties = self.penalty * np.mean(a ** 2, -1)
+        if self.penalty > 0:
+            a = np.clip(np.asarray(actions, np.float64), -1.0, 1.0)
+            self._penalties = self.penalty * np.mean(a ** 2, -1)
         self.venv.step_async(_combine(self.base(self._obs), actions, weight))
 
     def step_wait(self):
