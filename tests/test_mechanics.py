@@ -7,10 +7,22 @@ import math
 
 import pytest
 import torch
+from hypothesis import given, settings
+from hypothesis import strategies as st
 
 import torchpvs as tp
 from torchpvs.lie import exp_se3, magnus4_step
-from torchpvs.mechanics import build_maps, elastic_energy, elastic_energy_maps, elastic_grad_hess
+from torchpvs.mechanics import (
+    build_maps,
+    elastic_energy,
+    elastic_energy_maps,
+    elastic_grad_hess,
+    magnus_twists,
+    node_constants,
+    node_fields,
+    pose_constants,
+    tip_pose,
+)
 from torchpvs.sections import build_layout, n_coordinates
 from torchpvs.solver import SolverOptions, tube_tensors
 
@@ -46,6 +58,45 @@ def test_analytic_derivatives_match_autograd(order, scene_name):
     assert torch.allclose(elastic_energy_maps(q, maps), f(q, lay), rtol=1e-13, atol=1e-15)
     assert ((g - gA) * m).abs().max() <= 1e-12 * gA.abs().max()
     assert ((H - HA) * mm).abs().max() <= 1e-12 * HA.abs().max()
+
+
+@settings(max_examples=40, deadline=None)
+@given(st.lists(st.floats(-300.0, 300.0), min_size=4, max_size=4), st.floats(1e-4, 0.05))
+def test_closed_form_magnus_exponent_matches_the_general_step(u, h):
+    """The backbone's Magnus exponent in closed form (twists ((ux, uy, 0), e3)) equals the
+    general 4th-order step with the se(3) bracket (torchpvs.lie.magnus4_step)."""
+    dt = torch.float64
+    uu = torch.tensor(u, dtype=dt).reshape(2, 2)
+    xi = [torch.tensor([a, b, 0.0, 0.0, 0.0, 1.0], dtype=dt) for a, b in uu]
+    ref = magnus4_step(xi[0], xi[1], torch.tensor(h, dtype=dt))
+    got = exp_se3(magnus_twists(uu[None], torch.tensor(h, dtype=dt))[0])
+    assert torch.allclose(got, ref, rtol=1e-13, atol=1e-14)
+
+
+def test_cached_node_constants_leave_fields_and_tip_unchanged():
+    """node_fields with the layout's precomputed constants (what the solver caches per
+    insertion state) equals node_fields computing them, and tip_pose with the constants stored
+    by build_maps equals tip_pose without them."""
+    scene = tp.load_scene("renda2021_fig3")
+    opts = SolverOptions()
+    disc = opts.discretization(2)
+    dt = torch.float64
+    tubes = tube_tensors(scene, dt, torch.device("cpu"))
+    D = torch.tensor([[0.0935, 0.2085], [0.05, 0.15]], dtype=dt)
+    A = torch.tensor([[0.0, 1.3], [0.2, -2.0]], dtype=dt)
+    Z = torch.zeros(2, 3, dtype=dt)
+    lay = build_layout(tubes, D, A, Z, Z, torch.zeros(2, dtype=torch.bool), disc)
+    tab = disc.tables(dt, torch.device("cpu"))
+    nq = n_coordinates(2, disc.n_basis)
+    q = 3.0 * torch.randn(2, nq, dtype=dt, generator=torch.Generator().manual_seed(0))
+    f0 = node_fields(q, lay, tab["xm"], tab["phi_m"], tab["Q_m"])
+    f1 = node_fields(q, lay, tab["xm"], tab["phi_m"], tab["Q_m"], node_constants(lay, tab["xm"]))
+    for k in f0:
+        assert torch.equal(f0[k], f1[k]), k
+    maps = build_maps(lay, tab, nq)
+    for a, b in zip(tip_pose(q, lay, tab), tip_pose(q, lay, tab, pose_constants(maps)),
+                    strict=True):
+        assert torch.allclose(a, b, rtol=0, atol=1e-15)
 
 
 def test_magnus_step_exact_for_constant_strain_and_4th_order_for_helix():

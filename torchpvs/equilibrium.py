@@ -9,8 +9,8 @@ from typing import Any
 import torch
 
 from .forces import equilibrium_forces, paper_actuation
-from .lie import magnus4_step
-from .mechanics import elastic_energy_maps, node_fields, section_start_poses
+from .lie import exp_se3
+from .mechanics import elastic_energy_maps, magnus_twists, node_fields, section_start_poses
 from .newton import active_index, compact_scaled
 
 __all__ = ["Equilibrium"]
@@ -233,11 +233,7 @@ class Equilibrium:
             f = node_fields(q, lay, xi_all, phi, Qb)
             u = f["u"].reshape(B, -1, points, 2 * m, 2)                        # (B, S, K, 2m, 2)
             u = torch.gather(u, 1, k[:, None, :, None, None].expand(B, 1, points, 2 * m, 2))[:, 0]
-            zero = torch.zeros_like(u[..., :1])
-            tw = torch.cat([u, zero, zero, zero, torch.ones_like(zero)], -1)
-            tw = tw.reshape(B, points, m, 2, 6)
-            hs = (x / m)[..., None].expand(B, points, m)
-            steps = magnus4_step(tw[..., 0, :], tw[..., 1, :], hs)
+            steps = exp_se3(magnus_twists(u.reshape(B, points, m, 2, 2), x / m))
             g = torch.gather(poses, 1, k[..., None, None].expand(B, points, 4, 4))
             for i in range(m):
                 g = g @ steps[:, :, i]

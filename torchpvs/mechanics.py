@@ -20,12 +20,13 @@ from typing import TYPE_CHECKING
 
 import torch
 
-from .lie import magnus4_step, rot_z
+from .lie import exp_se3, rot_z
 
 if TYPE_CHECKING:
     from .sections import Layout
 
-__all__ = ["elastic_energy", "node_fields", "potential", "section_start_poses", "tip_pose"]
+__all__ = ["elastic_energy", "magnus_twists", "node_constants", "node_fields", "pose_constants",
+           "potential", "section_start_poses", "tip_pose"]
 
 
 def poly(coef: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
@@ -57,25 +58,18 @@ def split_q(q: torch.Tensor, lay: Layout):
     return w, X[..., :2, :], X[..., 2:, :]
 
 
-def node_fields(q: torch.Tensor, lay: Layout, xi: torch.Tensor,
-                phi: torch.Tensor, Qb: torch.Tensor) -> dict[str, torch.Tensor]:
-    """Strains and angles at normalized points ``xi (G,)`` of every section.
-
-    Returns ``u (..., S, G, 2)`` backbone bending [1/m] in the twist-free frame,
-    ``psi (..., S, G, N)`` tube angles [rad], ``dpsi`` torsions [1/m], ``ustar (..., S, G, N, 3)``
-    precurvatures in the tube frames, ``Ru (..., S, G, N, 2)`` = ``Rz(psi) u*_xy``, and per
-    section the angle increments ``inc (..., S, N)`` and start angles ``psi_start``.
-    """
-    w, a, c = split_q(q, lay)
+def node_constants(lay: Layout, xi: torch.Tensor) -> dict[str, torch.Tensor]:
+    """The ``q``-independent part of :func:`node_fields` at normalized points ``xi (G,)``:
+    ``s (..., S, G)`` arc length [m], ``ustar (..., S, G, N, 3)`` precurvatures [1/m], and the
+    prescribed sections' twist ``presc_local (..., S, G, N)`` / ``presc_inc (..., S, N)`` [rad]
+    and mask ``pmask (..., S, N)``. It depends on the insertions only, so a solve that keeps
+    them computes it once per layout (:func:`build_maps` stores it for the Magnus nodes)."""
     h, start = lay.h, lay.start
-    present, curved, presc = lay.present, lay.curved, lay.presc
+    curved, presc = lay.curved, lay.presc
     s = start[..., None] + 0.5 * (xi + 1.0) * h[..., None]                 # (..., S, G)
     t = s[..., None] - lay.tau[..., None, None, :]                      # (..., S, G, N)
     coef = lay.coef[..., None, None, :, :, :]                           # (..., 1, 1, N, 3, P)
     ustar = poly(coef, t) * curved[..., None, :, None]
-    # phi/Qb are (G, n) or (..., S, G, n): matmul broadcasts over both.
-    u = (a @ phi.transpose(-1, -2)).transpose(-1, -2)                    # (..., S, G, 2)
-    dpsi = (c @ phi.transpose(-1, -2)).transpose(-1, -2)                 # (..., S, G, N)
     # Prescribed sections: strain = precurvature (twist u*_z integrated exactly).
     zc = lay.coef[..., 2, :][..., None, :, :]                           # (..., 1, N, P)
     t0 = start[..., None] - lay.tau[..., None, :]                       # (..., S, N)
@@ -84,18 +78,42 @@ def node_fields(q: torch.Tensor, lay: Layout, xi: torch.Tensor,
     Zt = _poly_int(zc[..., None, :, :], t)
     presc_local = (Zt - Z0[..., None, :]) * pmask[..., None, :]
     presc_inc = (_poly_int(zc, t0 + h[..., None]) - Z0) * pmask
-    inc = h[..., None] * c[..., 0] + presc_inc
+    return {"s": s, "ustar": ustar, "presc_local": presc_local, "presc_inc": presc_inc,
+            "pmask": pmask}
+
+
+def node_fields(q: torch.Tensor, lay: Layout, xi: torch.Tensor,
+                phi: torch.Tensor, Qb: torch.Tensor,
+                const: dict[str, torch.Tensor] | None = None) -> dict[str, torch.Tensor]:
+    """Strains and angles at normalized points ``xi (G,)`` of every section.
+
+    Returns ``u (..., S, G, 2)`` backbone bending [1/m] in the twist-free frame,
+    ``psi (..., S, G, N)`` tube angles [rad], ``dpsi`` torsions [1/m], ``ustar (..., S, G, N, 3)``
+    precurvatures in the tube frames, ``Ru (..., S, G, N, 2)`` = ``Rz(psi) u*_xy``, and per
+    section the angle increments ``inc (..., S, N)`` and start angles ``psi_start``.
+    ``const``: :func:`node_constants` of the same layout and points (computed when ``None``;
+    pass it only where no gradient with respect to the layout is wanted).
+    """
+    if const is None:
+        const = node_constants(lay, xi)
+    w, a, c = split_q(q, lay)
+    h, present, presc = lay.h, lay.present, lay.presc
+    ustar, pmask = const["ustar"], const["pmask"]
+    # phi/Qb are (G, n) or (..., S, G, n): matmul broadcasts over both.
+    u = (a @ phi.transpose(-1, -2)).transpose(-1, -2)                    # (..., S, G, 2)
+    dpsi = (c @ phi.transpose(-1, -2)).transpose(-1, -2)                 # (..., S, G, N)
+    inc = h[..., None] * c[..., 0] + const["presc_inc"]
     psi0 = lay.psi0 + lay.D * w
     psi_start = psi0[..., None, :] + torch.cumsum(inc, -2) - inc
     psi = (psi_start[..., None, :] + 0.5 * h[..., None, None] *
-           (c @ Qb.transpose(-1, -2)).transpose(-1, -2) + presc_local)
+           (c @ Qb.transpose(-1, -2)).transpose(-1, -2) + const["presc_local"])
     cs, sn = torch.cos(psi), torch.sin(psi)
     ux, uy = ustar[..., 0], ustar[..., 1]
     Ru = torch.stack([cs * ux - sn * uy, sn * ux + cs * uy], -1)
     u = u + presc[..., None, None] * (Ru * present[..., None, :, None]).sum(-2)
     dpsi = dpsi + pmask[..., None, :] * ustar[..., 2]
-    return {"s": s, "u": u, "psi": psi, "dpsi": dpsi, "ustar": ustar, "Ru": Ru, "inc": inc,
-            "psi_start": psi_start, "psi0": psi0}
+    return {"s": const["s"], "u": u, "psi": psi, "dpsi": dpsi, "ustar": ustar, "Ru": Ru,
+            "inc": inc, "psi_start": psi_start, "psi0": psi0}
 
 
 def elastic_energy(q: torch.Tensor, lay: Layout,
@@ -112,23 +130,33 @@ def elastic_energy(q: torch.Tensor, lay: Layout,
     return (dens * lay.W).sum((-1, -2)) + guide + lay.guide_const
 
 
-def _twists(u: torch.Tensor) -> torch.Tensor:
-    """Backbone strain twists ``(omega, v) = ((ux, uy, 0), e3)`` from ``u (..., 2)``."""
-    zero = torch.zeros_like(u[..., :1])
-    one = torch.ones_like(u[..., :1])
-    return torch.cat([u, zero, zero, zero, one], -1)
+def magnus_twists(u: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
+    """The 4th-order Magnus exponents ``Omega (..., m, 6)`` of the backbone for the twists
+    ``xi = ((ux, uy, 0), e3)`` at the two Gauss points of each of ``m`` steps of length
+    ``h (...,)`` (``u (..., m, 2, 2)``: step, Gauss point, component). The general formula
+    (:func:`torchpvs.lie.magnus4_step`) reduces to closed form: ``[xi1, xi2]`` has the angular
+    part ``(0, 0, u1 x u2)`` and the linear part ``(u1 - u2) x e3``."""
+    u1, u2 = u[..., 0, :], u[..., 1, :]
+    h = h[..., None]
+    k = (3.0**0.5 / 12.0) * h * h
+    mid = 0.5 * h[..., None] * (u1 + u2)
+    du = k[..., None] * (u1 - u2)
+    cross = k * (u1[..., 0] * u2[..., 1] - u1[..., 1] * u2[..., 0])
+    return torch.stack([mid[..., 0], mid[..., 1], cross, du[..., 1], -du[..., 0],
+                        h.expand_as(cross)], -1)
 
 
-def section_start_poses(q: torch.Tensor, lay: Layout,
-                        tab: dict[str, torch.Tensor]) -> tuple[torch.Tensor, dict]:
+def section_start_poses(q: torch.Tensor, lay: Layout, tab: dict[str, torch.Tensor],
+                        const: dict[str, torch.Tensor] | None = None
+                        ) -> tuple[torch.Tensor, dict]:
     """Poses ``(..., S + 1, 4, 4)`` of the backbone frame at every cut (orifice first, tip last),
-    by the 4th-order Magnus scheme with ``n_magnus`` steps per section."""
-    f = node_fields(q, lay, tab["xm"], tab["phi_m"], tab["Q_m"])
-    xi = _twists(f["u"])                                                   # (..., S, 2m, 6)
-    m = xi.shape[-2] // 2
-    xi = xi.reshape(xi.shape[:-2] + (m, 2, 6))
-    hs = (lay.h / m)[..., None].expand(xi.shape[:-2])
-    steps = magnus4_step(xi[..., 0, :], xi[..., 1, :], hs)                  # (..., S, m, 4, 4)
+    by the 4th-order Magnus scheme with ``n_magnus`` steps per section. ``const``: the
+    :func:`node_constants` of the Magnus nodes (see :func:`node_fields`)."""
+    f = node_fields(q, lay, tab["xm"], tab["phi_m"], tab["Q_m"], const)
+    u = f["u"]                                                             # (..., S, 2m, 2)
+    m = u.shape[-2] // 2
+    omega = magnus_twists(u.reshape(u.shape[:-2] + (m, 2, 2)), lay.h / m)  # (..., S, m, 6)
+    steps = exp_se3(omega)                                                 # (..., S, m, 4, 4)
     # Product of the m steps of every section by pairwise (tree) reduction: log2(m) batched
     # matmuls instead of m sequential ones (op count, not flops, bounds small batches).
     sec = _ordered_product(steps)                                          # (..., S, 4, 4)
@@ -155,10 +183,12 @@ def _ordered_product(mats: torch.Tensor) -> torch.Tensor:
     return mats[..., 0, :, :]
 
 
-def tip_pose(q: torch.Tensor, lay: Layout, tab: dict[str, torch.Tensor]):
+def tip_pose(q: torch.Tensor, lay: Layout, tab: dict[str, torch.Tensor],
+             const: dict[str, torch.Tensor] | None = None):
     """Tip position ``(..., 3)`` and the material frame ``(..., 3, 3)`` of the tube forming the
-    tip (base frame), plus the tube angles at the tip ``(..., N)``."""
-    poses, f = section_start_poses(q, lay, tab)
+    tip (base frame), plus the tube angles at the tip ``(..., N)``. ``const``: the
+    :func:`node_constants` of the Magnus nodes (:func:`pose_constants`), or ``None``."""
+    poses, f = section_start_poses(q, lay, tab, const)
     g = poses[..., -1, :, :]
     psi_tip = f["psi0"] + f["inc"].sum(-2)                                  # (..., N)
     angle = (psi_tip * lay.tip_tube).sum(-1)
@@ -241,8 +271,8 @@ def build_maps(lay: Layout, tab: dict[str, torch.Tensor],
     dtype, device = h.dtype, h.device
     qmask = lay.qmask.detach()
     with torch.no_grad():
-        ustar = node_fields(torch.zeros(B, nq, dtype=dtype, device=device), lay,
-                            tab["xq"], phi, tab["Q_q"])["ustar"]
+        ustar = node_constants(lay, tab["xq"])["ustar"]
+        pose = {f"pose_{k}": v.detach() for k, v in node_constants(lay, tab["xm"]).items()}
     W = lay.W.detach()                                                   # (B, S, Q)
     Pn = lay.present.detach()[:, :, None, :].expand(B, S, Q, N)
     EIp = lay.EI.detach()[:, None, None, :] * Pn
@@ -262,7 +292,13 @@ def build_maps(lay: Layout, tab: dict[str, torch.Tensor],
     return {"ustar": ustar.detach(), "W": W, "EIp": EIp, "GJp": GJp, "H_const": H_const,
             "guide": guide, "guide_const": lay.guide_const.detach(), "h": h,
             "qmask": qmask, "psi0": lay.psi0.detach(), "bvec": angle_bases(lay, nq),
-            "phi": phi, "Qb": tab["Q_q"], **_node_tables(phi, tab["Q_q"])}
+            "phi": phi, "Qb": tab["Q_q"], **_node_tables(phi, tab["Q_q"]), **pose}
+
+
+def pose_constants(maps: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """The :func:`node_constants` of the Magnus nodes stored by :func:`build_maps` (for
+    :func:`tip_pose` in solves that need no gradient with respect to the layout)."""
+    return {k[5:]: v for k, v in maps.items() if k.startswith("pose_")}
 
 
 

@@ -23,7 +23,13 @@ from typing import NamedTuple
 
 import torch
 
-from .mechanics import elastic_energy_maps, elastic_grad_hess, skew_vee, tip_pose
+from .mechanics import (
+    elastic_energy_maps,
+    elastic_grad_hess,
+    pose_constants,
+    skew_vee,
+    tip_pose,
+)
 
 __all__ = ["KERNELS", "NewtonResult", "Problem", "active_index", "chunked", "compact",
            "compact_scaled", "derivatives", "expand", "merit", "newton", "subset"]
@@ -97,24 +103,25 @@ def derivatives(q: torch.Tensor, prob: Problem):
     Magnus chain."""
     g, H = elastic_grad_hess(q, prob.maps)
     if prob.with_load:
-        Hl, gl = _load_hessian(prob.tab, prob.has_moment)(q, prob.lay, q.detach())
+        Hl, gl = _load_hessian(prob.tab, prob.has_moment)(q, prob.lay,
+                                                          pose_constants(prob.maps), q.detach())
         g = g + gl
         H = H + 0.5 * (Hl + Hl.transpose(-1, -2))
     return g, H
 
 
 def _load_hessian(tab, has_moment: bool):
-    def load_only(q, lay, q_ref):
-        p, R, _ = tip_pose(q, lay, tab)
+    def load_only(q, lay, const, q_ref):
+        p, R, _ = tip_pose(q, lay, tab, const)
         work = (lay.force * p).sum(-1)
         if has_moment:
             with torch.no_grad():
-                _, R0, _ = tip_pose(q_ref, lay, tab)
+                _, R0, _ = tip_pose(q_ref, lay, tab, const)
             work = work + (lay.moment * skew_vee(R @ R0.transpose(-1, -2))).sum(-1)
         return -work
 
-    def grad_and_grad(q, lay, q_ref):
-        g = torch.func.grad(load_only)(q, lay, q_ref)
+    def grad_and_grad(q, lay, const, q_ref):
+        g = torch.func.grad(load_only)(q, lay, const, q_ref)
         return g, g
 
     return torch.func.vmap(torch.func.jacfwd(grad_and_grad, has_aux=True))
@@ -125,11 +132,11 @@ def merit(q: torch.Tensor, prob: Problem, q_ref: torch.Tensor) -> torch.Tensor:
     """Total potential ``(B,)`` [J] (the moment's virtual work taken about ``q_ref``)."""
     U = elastic_energy_maps(q, prob.maps)
     if prob.with_load:
-        lay, tab = prob.lay, prob.tab
-        p, R, _ = tip_pose(q, lay, tab)
+        lay, tab, const = prob.lay, prob.tab, pose_constants(prob.maps)
+        p, R, _ = tip_pose(q, lay, tab, const)
         U = U - (lay.force * p).sum(-1)
         if prob.has_moment:
-            _, R0, _ = tip_pose(q_ref, lay, tab)
+            _, R0, _ = tip_pose(q_ref, lay, tab, const)
             U = U - (lay.moment * skew_vee(R @ R0.transpose(-1, -2))).sum(-1)
     return U
 

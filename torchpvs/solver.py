@@ -15,7 +15,7 @@ import torch
 
 from .equilibrium import Equilibrium
 from .implicit import differentiable_outputs
-from .mechanics import tip_pose
+from .mechanics import pose_constants, tip_pose
 from .newton import (
     KERNELS,
     Problem,
@@ -387,7 +387,7 @@ def _order_estimate(scene, tubes, D, A, F, M, res, opts: SolverOptions, plan: Pl
     prob = Problem(lay, tab, maps, res["with_load"], res["has_moment"])
     q = _resize_q(res["q"], N, n_from, disc.n_basis) * lay.qmask
     q1, ok = _newton_step(q, prob)
-    tip1, _, _ = tip_pose(q1, lay, tab)
+    tip1, _, _ = tip_pose(q1, lay, tab, pose_constants(maps))
     est = (tip1 - res["tip"]).norm(dim=-1)
     est = torch.where(ok & torch.isfinite(est), est, torch.full_like(est, float("inf")))
     return est, q1
@@ -563,7 +563,7 @@ def _solve_order(scene, tubes, D, A, F, M, order, n_magnus, opts, q_init, plan: 
     prob = Problem(lay, tab, maps, with_load, has_moment)
     out = KERNELS[opts.kernel](q, prob, L_char, method=opts.method, tol=opts.tol,
                                max_iter=opts.max_iter)
-    p, R, _ = tip_pose(out.q, lay, tab)
+    p, R, _ = tip_pose(out.q, lay, tab, pose_constants(maps))
     return {"q": out.q, "lay": lay, "tab": tab, "disc": disc, "order": order, "H": out.H,
             "g": out.g, "converged": out.converged & torch.isfinite(p).all(-1),
             "residual": out.residual, "iterations": out.iterations, "tip": p, "R": R, "D": D,
