@@ -238,3 +238,31 @@ def test_nonconvergence_is_reported_not_nan():
     with pytest.raises(tp.SolverError):
         tp.solve(sc, rotation=[0.0, 2.0],
                  options=tp.SolverOptions(order=3, max_iter=1, on_failure="raise"))
+
+
+def test_no_grad_solve_returns_ordinary_tensors_and_leaves_caches_usable():
+    """A solve without gradients runs in inference mode internally; what it returns (and the
+    context its methods use) are ordinary tensors: they can be modified in place and enter
+    autograd graphs. A solve called inside the caller's own inference mode, and a loaded one
+    (whose load Hessian uses torch.func), give the same numbers, and a later differentiable
+    solve on the same (cached) plan still has gradients."""
+    scene = tp.load_scene("renda2021_fig3")
+    force = torch.tensor([0.0, 0.05, 0.0], dtype=torch.float64)
+    eq = tp.solve(scene, tip_force=force)
+    for name in ("q", "tip_position", "actuation_forces", "actuation_torques", "stable"):
+        assert not getattr(eq, name).is_inference(), name
+    assert not any(t.is_inference() for t in eq._ctx["lay"])
+    w = torch.ones(3, dtype=torch.float64, requires_grad=True)
+    (eq.tip_position[0] * w).sum().backward()            # saves tip_position for backward
+    assert torch.equal(w.grad, eq.tip_position[0])
+    J = eq.jacobians()                                   # autograd on the stored context
+    assert torch.isfinite(J.tip_jacobian).all()
+    eq.q.mul_(1.0)                                       # in place: allowed
+    with torch.inference_mode():
+        eq_inf = tp.solve(scene, tip_force=force)     # (inference tensors there, as torch's)
+    assert torch.allclose(eq_inf.tip_position, eq.tip_position, rtol=0, atol=1e-15)
+    rot = torch.tensor(scene.actuation.rotation, dtype=torch.float64, requires_grad=True)
+    eq_g = tp.solve(scene, rotation=rot, tip_force=force)
+    eq_g.tip_position[0, 0].backward()
+    assert rot.grad is not None and torch.isfinite(rot.grad).all() and rot.grad.abs().sum() > 0
+    assert torch.allclose(eq_g.tip_position.detach(), eq.tip_position, rtol=0, atol=1e-12)

@@ -31,8 +31,9 @@ def _gauss_legendre(n: int, dtype: torch.dtype, device: torch.device | None):
     # numpy's leggauss costs ~0.3 ms (an eigenvalue problem): once per size, not once per
     # layout.
     x, w = np.polynomial.legendre.leggauss(n)
-    return (torch.as_tensor(x, dtype=dtype, device=device),
-            torch.as_tensor(w, dtype=dtype, device=device))
+    with torch.inference_mode(False):    # cached: ordinary tensors (autograd may save them)
+        return (torch.as_tensor(x, dtype=dtype, device=device),
+                torch.as_tensor(w, dtype=dtype, device=device))
 
 
 def legendre_basis(xi: torch.Tensor, n: int) -> tuple[torch.Tensor, torch.Tensor]:

@@ -22,11 +22,13 @@ def envelope_forces(tubes, res):
     """``tau_D = dU*/dD``, ``tau_alpha = dU*/dalpha`` by the envelope theorem: at an equilibrium
     the total derivative equals the partial derivative at fixed coordinates ``q`` (the sections
     move with ``D``, the coordinates are strains on the normalized section coordinate)."""
-    q = res["q"].detach()
-    D = res["D"].detach().clone().requires_grad_(True)
-    A = res["alpha"].detach().clone().requires_grad_(True)
-    with torch.enable_grad():
-        lay = build_layout(tubes, D, A, res["F"], res["M"], res["loaded"], res["disc"])
+    # A reverse pass needs ordinary tensors: the solve may run in inference mode, whose tensors
+    # autograd cannot save (clones made outside it are ordinary).
+    with torch.inference_mode(False), torch.enable_grad():
+        q, F, M, loaded = (res[k].detach().clone() for k in ("q", "F", "M", "loaded"))
+        D = res["D"].detach().clone().requires_grad_(True)
+        A = res["alpha"].detach().clone().requires_grad_(True)
+        lay = build_layout(tubes, D, A, F, M, loaded, res["disc"])
         R0 = tip_pose(q, lay, res["tab"])[1].detach() if res["has_moment"] else None
         U = potential(q, lay, res["tab"], R0, res["with_load"])
         gD, gA = torch.autograd.grad(U.sum(), (D, A))

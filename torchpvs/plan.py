@@ -109,7 +109,8 @@ def plan_for(scene: Scene, dtype: torch.dtype, device: torch.device) -> Plan:
     key = (scene.tubes, dtype, torch.device(device))
     plan = _PLANS.get(key)
     if plan is None:
-        plan = _PLANS[key] = Plan(tube_tensors(scene, dtype, torch.device(device)))
+        with torch.inference_mode(False):    # kept across calls, some with autograd
+            plan = _PLANS[key] = Plan(tube_tensors(scene, dtype, torch.device(device)))
         if len(_PLANS) > _MAX_PLANS:
             _PLANS.popitem(last=False)
     else:

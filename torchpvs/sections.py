@@ -75,8 +75,10 @@ class Discretization:
 
 @functools.lru_cache(maxsize=64)
 def _tables(disc: Discretization, dtype: torch.dtype, device: torch.device):
-    # Read-only constants: callers never write into them.
-    return disc._build_tables(dtype, device)
+    # Read-only constants: callers never write into them. Ordinary tensors even when first
+    # asked for in inference mode, since cached values later enter autograd graphs.
+    with torch.inference_mode(False):
+        return disc._build_tables(dtype, device)
 
 
 def n_coordinates(n_tubes: int, n_basis: int) -> int:
