@@ -266,3 +266,34 @@ def test_no_grad_solve_returns_ordinary_tensors_and_leaves_caches_usable():
     eq_g.tip_position[0, 0].backward()
     assert rot.grad is not None and torch.isfinite(rot.grad).all() and rot.grad.abs().sum() > 0
     assert torch.allclose(eq_g.tip_position.detach(), eq.tip_position, rtol=0, atol=1e-12)
+
+
+def test_kernel_returns_the_residual_at_its_solution_and_a_hessian_within_final_step():
+    """A warm solve ends with a gradient-only check after a tiny pure Newton step: the residual
+    it reports is that of the returned coordinates (recomputed here from scratch), and the
+    Hessian it returns (the last iterate's) matches the exact one at the solution to the
+    relative size of that step (newton.FINAL_STEP)."""
+    from torchpvs import newton
+    from torchpvs.mechanics import elastic_grad, elastic_grad_hess
+    from torchpvs.plan import plan_for
+
+    scene = tp.load_scene("renda2021_fig3")
+    rot = torch.tensor(scene.actuation.rotation, dtype=torch.float64)
+    opts = tp.SolverOptions(order=2, n_magnus=8, compute_forces=False)
+    eq0 = tp.solve(scene, rotation=rot, options=opts)
+    eq = tp.solve(scene, rotation=rot + torch.tensor([0.0, 0.02], dtype=torch.float64),
+                  options=opts, initial=eq0)
+    info = eq._ctx["implicit_info"]
+    plan = plan_for(scene, torch.float64, torch.device("cpu"))
+    ctx = eq._ctx
+    lay, maps = plan.layout(plan.tubes, ctx["D"], ctx["alpha"], ctx["F"], ctx["M"],
+                            info["loaded"], ctx["disc"], eq.q.shape[-1])
+    g, H = elastic_grad_hess(eq.q, maps)
+    assert torch.equal(elastic_grad(eq.q, maps), g)
+    H.diagonal(dim1=-2, dim2=-1).add_(1.0 - info["qmask"])
+    L = float(lay.ell.amax() + lay.D.amax())
+    res, _ = newton.scaled_residual(g, H, torch.tensor([L], dtype=torch.float64))
+    assert bool(eq.converged.all()) and float(res) < tp.SolverOptions().tol
+    assert float(eq.residual_norm) == pytest.approx(float(res), rel=1e-3, abs=1e-14)
+    rel = (info["H"] - H).abs().max() / H.abs().max()
+    assert 0 < float(rel) <= newton.FINAL_STEP         # (0: the check ran)
