@@ -44,19 +44,28 @@ def exp_so3(w: torch.Tensor) -> torch.Tensor:
 
 
 def exp_se3(xi: torch.Tensor) -> torch.Tensor:
-    """Exponential of a twist ``(..., 6) = (omega, v) -> (..., 4, 4)``."""
-    w, v = xi[..., :3], xi[..., 3:]
-    a, b, c = _coefficients((w * w).sum(-1))
-    W = hat(w)
-    W2 = W @ W
-    eye = torch.eye(3, dtype=xi.dtype, device=xi.device).expand(W.shape)
-    R = eye + a[..., None, None] * W + b[..., None, None] * W2
-    V = eye + b[..., None, None] * W + c[..., None, None] * W2
-    p = (V @ v[..., None])[..., 0]
-    top = torch.cat([R, p[..., None]], -1)
-    bottom = torch.zeros(top.shape[:-2] + (1, 4), dtype=xi.dtype, device=xi.device)
-    bottom[..., 0, 3] = 1.0
-    return torch.cat([top, bottom], -2)
+    """Exponential of a twist ``(..., 6) = (omega, v) -> (..., 4, 4)``.
+
+    ``R = I + a W + b W^2`` and ``p = (I + b W + c W^2) v`` with ``W^2 = w w^T - t^2 I`` written
+    entry by entry: every operation then runs on ``(...)``-shaped arrays, not on ``(..., 3, 3)``
+    ones (about 6x less memory traffic for the large batches of Magnus steps)."""
+    wx, wy, wz, vx, vy, vz = xi.unbind(-1)
+    t2 = wx * wx + wy * wy + wz * wz
+    a, b, c = _coefficients(t2)
+    d = 1 - b * t2
+    bwx, bwy = b * wx, b * wy
+    bxy, bxz, byz = bwx * wy, bwx * wz, bwy * wz
+    awx, awy, awz = a * wx, a * wy, a * wz
+    cwv = c * (wx * vx + wy * vy + wz * vz)
+    e = 1 - c * t2
+    px = e * vx + b * (wy * vz - wz * vy) + cwv * wx
+    py = e * vy + b * (wz * vx - wx * vz) + cwv * wy
+    pz = e * vz + b * (wx * vy - wy * vx) + cwv * wz
+    zero, one = torch.zeros_like(t2), torch.ones_like(t2)
+    return torch.stack([d + bwx * wx, bxy - awz, bxz + awy, px,
+                        bxy + awz, d + bwy * wy, byz - awx, py,
+                        bxz - awy, byz + awx, d + b * wz * wz, pz,
+                        zero, zero, zero, one], -1).unflatten(-1, (4, 4))
 
 
 def se3_bracket(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
