@@ -62,8 +62,9 @@ class Problem(NamedTuple):
 _SHARED = ("phi", "Qb", "values_T", "Q_QQ", "phi_PQ")   # maps entries without a batch dim
 
 
-def subset(prob: Problem, idx: torch.Tensor, merit_only: bool = False) -> Problem:
-    """The problem restricted to batch rows ``idx`` (the merit needs no Hessian constants)."""
+def subset(prob: Problem, idx: torch.Tensor | slice, merit_only: bool = False) -> Problem:
+    """The problem restricted to batch rows ``idx`` (indices, or a slice for views without a
+    copy; the merit needs no Hessian constants)."""
     lay = type(prob.lay)(*(v[idx] for v in prob.lay))
     maps = {k: (v if k in _SHARED else v[idx]) for k, v in prob.maps.items()
             if not (merit_only and k == "H_const")}
@@ -196,7 +197,7 @@ def chunked(fn, q: torch.Tensor, prob: Problem, *batched: torch.Tensor, **kwargs
         return tuple(fn(q, prob, *batched, **kwargs))
     parts = []
     for start in range(0, B, chunk):
-        rows = torch.arange(start, min(B, start + chunk), device=q.device)
+        rows = slice(start, min(B, start + chunk))     # views: the maps are not copied
         parts.append(fn(q[rows], subset(prob, rows), *(t[rows] for t in batched), **kwargs))
     return tuple(torch.cat(field) for field in zip(*parts, strict=True))
 

@@ -343,6 +343,9 @@ def solve_tensors(scene: Scene, tubes: TubeTensors, D, A, F, M, opts: SolverOpti
         q1 = q0 * lay.qmask
         moved = (lay.qmask != res["lay"].qmask[sel]).any(-1).nonzero().flatten()
         if moved.numel():
+            first, k = int(moved[0]), moved.numel()
+            if int(moved[-1]) - first + 1 == k:      # usually one run of rows: views, no copy
+                moved = slice(first, first + k)
             prob = subset(Problem(lay, res["tab"], maps, res["with_load"], res["has_moment"]),
                            moved)
             q1 = q1.clone()
