@@ -10,7 +10,13 @@ import torch
 
 from .forces import equilibrium_forces, paper_actuation
 from .lie import exp_se3
-from .mechanics import elastic_energy_maps, magnus_twists, node_fields, section_start_poses
+from .mechanics import (
+    compact_q,
+    elastic_energy_maps,
+    magnus_twists,
+    node_fields,
+    section_start_poses,
+)
 from .newton import active_index, compact_scaled
 
 __all__ = ["Equilibrium"]
@@ -162,7 +168,7 @@ class Equilibrium:
             tau = _stability_threshold(H.dtype)
             stable = torch.linalg.cholesky_ex(Hs - tau * torch.diag_embed(active))[1] == 0
             dofs = qmask.sum(-1).long()
-            energy = elastic_energy_maps(q, res["maps"])
+            energy = elastic_energy_maps(compact_q(q, res["maps"]), res["maps"])
             if res["with_load"]:
                 energy = energy - (lay.force * res["tip"]).sum(-1)
         forces = torques = insert_side = None

@@ -25,8 +25,9 @@ from .lie import exp_se3, rot_z
 if TYPE_CHECKING:
     from .sections import Layout
 
-__all__ = ["elastic_energy", "magnus_twists", "node_constants", "node_fields", "pose_constants",
-           "potential", "section_start_poses", "tip_pose"]
+__all__ = ["compact_q", "elastic_energy", "expand_hessian", "expand_q", "magnus_twists",
+           "node_constants", "node_fields", "pose_constants", "potential", "section_start_poses",
+           "tip_pose"]
 
 
 def poly(coef: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
@@ -261,27 +262,49 @@ def angle_bases(lay: Layout, nq: int) -> torch.Tensor:
 
 def build_maps(lay: Layout, tab: dict[str, torch.Tensor],
                nq: int) -> dict[str, torch.Tensor]:
-    """Everything the fast energy/gradient/Hessian needs that does not change with ``q``."""
-    h = lay.h.detach()
-    B, S = h.shape
+    """Everything the fast energy/gradient/Hessian needs that does not change with ``q``, on
+    the *compact* coordinates: the guide twists and the sections that carry coordinates
+    (``S_c`` = the most active sections of an element in the batch), active ones first in
+    their order along the backbone. Only active sections store ``q``-dependent energy (the
+    others have zero weight), so nothing is lost, and the dense per-element algebra shrinks
+    from ``nq`` to ``nq_c = N + S_c (2 + N) n`` coordinates (Fig. 3 robot at order 2: 50 ->
+    26). ``maps["cidx"] (B, nq_c)`` gives each compact coordinate's index in ``q``
+    (:func:`compact_q`, :func:`expand_q`). The pose constants (``pose_*``) keep every section."""
+    h_full = lay.h.detach()
+    B, S_full = h_full.shape
     N = lay.EI.shape[-1]
     phi = tab["phi_q"]
     Q, n = phi.shape
     C = 2 + N
-    dtype, device = h.dtype, h.device
-    qmask = lay.qmask.detach()
+    dtype, device = h_full.dtype, h_full.device
+    active = lay.active.detach() > 0.5
+    S = max(1, int(active.sum(-1).amax()))
+    sec = torch.argsort((~active).to(torch.int8), dim=-1, stable=True)[:, :S]    # (B, S)
+    cidx = torch.cat([torch.arange(N, device=device).expand(B, N),
+                      (N + (sec * (C * n))[:, :, None]
+                       + torch.arange(C * n, device=device)).reshape(B, S * C * n)], -1)
+    nc = cidx.shape[-1]
+
+    def sections(t):        # (B, S_full, ...) -> (B, S, ...)
+        return torch.gather(t, 1, sec.reshape((B, S) + (1,) * (t.ndim - 2)).expand(
+            (B, S) + t.shape[2:]))
+
+    qmask = torch.gather(lay.qmask.detach(), 1, cidx)
     with torch.no_grad():
-        ustar = node_constants(lay, tab["xq"])["ustar"]
+        ustar = sections(node_constants(lay, tab["xq"])["ustar"])
         pose = {f"pose_{k}": v.detach() for k, v in node_constants(lay, tab["xm"]).items()}
-    W = lay.W.detach()                                                   # (B, S, Q)
-    Pn = lay.present.detach()[:, :, None, :].expand(B, S, Q, N)
+        b_full = sections(angle_bases(lay, nq))                              # (B, S, N, nq)
+        bvec = torch.gather(b_full, 3, cidx[:, None, None, :].expand(B, S, N, nc))
+    W = sections(lay.W.detach())                                           # (B, S, Q)
+    h = sections(h_full)
+    Pn = sections(lay.present.detach())[:, :, None, :].expand(B, S, Q, N)
     EIp = lay.EI.detach()[:, None, None, :] * Pn
     GJp = lay.GJ.detach()[:, None, None, :] * Pn
     A = torch.einsum("bsq,qp,qr->bspr", W * EIp.sum(-1), phi, phi)          # bending blocks
     T = torch.einsum("bsqj,qp,qr->bsjpr", W[..., None] * GJp, phi, phi)     # torsion blocks
-    guide = torch.zeros(B, nq, dtype=dtype, device=device)
+    guide = torch.zeros(B, nc, dtype=dtype, device=device)
     guide[:, :N] = lay.GJ.detach() * lay.D.detach() * qmask[:, :N]
-    H_const = torch.zeros(B, nq, nq, dtype=dtype, device=device)
+    H_const = torch.zeros(B, nc, nc, dtype=dtype, device=device)
     H_const.diagonal(dim1=-2, dim2=-1)[:, :N] = guide[:, :N]
     # Section-diagonal blocks written through strided views (no dense scatter): A (x) I_2 on the
     # bending coefficients, T_kj on tube j's torsion coefficients. Both vanish on inactive
@@ -291,8 +314,33 @@ def build_maps(lay: Layout, tab: dict[str, torch.Tensor],
     cc[..., 2:] = T.permute(0, 3, 4, 1, 2)
     return {"ustar": ustar.detach(), "W": W, "EIp": EIp, "GJp": GJp, "H_const": H_const,
             "guide": guide, "guide_const": lay.guide_const.detach(), "h": h,
-            "qmask": qmask, "psi0": lay.psi0.detach(), "bvec": angle_bases(lay, nq),
+            "qmask": qmask, "psi0": lay.psi0.detach(), "bvec": bvec, "cidx": cidx,
             "phi": phi, "Qb": tab["Q_q"], **_node_tables(phi, tab["Q_q"]), **pose}
+
+
+def compact_q(q: torch.Tensor, maps: dict[str, torch.Tensor]) -> torch.Tensor:
+    """``(B, nq) -> (B, nq_c)``: the coordinates that :func:`build_maps` keeps."""
+    return torch.gather(q, -1, maps["cidx"].expand(q.shape[:-1] + maps["cidx"].shape[-1:]))
+
+
+def expand_q(qc: torch.Tensor, maps: dict[str, torch.Tensor], nq: int) -> torch.Tensor:
+    """``(B, nq_c) -> (B, nq)``, zero on the coordinates left out (all inactive)."""
+    cidx = maps["cidx"].expand(qc.shape)
+    return torch.zeros(qc.shape[:-1] + (nq,), dtype=qc.dtype, device=qc.device).scatter(
+        -1, cidx, qc)
+
+
+def expand_hessian(Hc: torch.Tensor, maps: dict[str, torch.Tensor], nq: int) -> torch.Tensor:
+    """``(B, nq_c, nq_c) -> (B, nq, nq)``, identity on the coordinates left out."""
+    B, nc, _ = Hc.shape
+    cidx = maps["cidx"]
+    H = torch.zeros(B, nq * nq, dtype=Hc.dtype, device=Hc.device)
+    flat = (cidx[:, :, None] * nq + cidx[:, None, :]).reshape(B, nc * nc)
+    H.scatter_(1, flat, Hc.reshape(B, nc * nc))
+    H = H.view(B, nq, nq)
+    left_out = torch.ones(B, nq, dtype=Hc.dtype, device=Hc.device).scatter_(1, cidx, 0.0)
+    H.diagonal(dim1=-2, dim2=-1).add_(left_out)
+    return H
 
 
 def pose_constants(maps: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:

@@ -25,9 +25,12 @@ import torch
 from torch.utils._pytree import tree_map
 
 from .mechanics import (
+    compact_q,
     elastic_energy_maps,
     elastic_grad,
     elastic_grad_hess,
+    expand_hessian,
+    expand_q,
     pose_constants,
     skew_vee,
     tip_pose,
@@ -107,7 +110,7 @@ def derivatives(q: torch.Tensor, prob: Problem):
     Magnus chain."""
     g, H = elastic_grad_hess(q, prob.maps)
     if prob.with_load:
-        args = (q, prob.lay, pose_constants(prob.maps), q.detach())
+        args = (q, prob.lay, pose_constants(prob.maps), prob.maps["cidx"], q.detach())
         # torch.func transforms record autograd, which cannot save inference-mode tensors.
         with torch.inference_mode(False):
             if torch.is_inference_mode_enabled() or q.is_inference():
@@ -119,32 +122,41 @@ def derivatives(q: torch.Tensor, prob: Problem):
 
 
 def _load_hessian(tab, has_moment: bool):
-    def load_only(q, lay, const, q_ref):
-        p, R, _ = tip_pose(q, lay, tab, const)
+    def load_only(q, lay, const, cidx, q_ref):
+        # q: compact coordinates (build_maps); the pose needs all of them.
+        nq = lay.qmask.shape[-1]
+        p, R, _ = tip_pose(_expand(q, cidx, nq), lay, tab, const)
         work = (lay.force * p).sum(-1)
         if has_moment:
             with torch.no_grad():
-                _, R0, _ = tip_pose(q_ref, lay, tab, const)
+                _, R0, _ = tip_pose(_expand(q_ref, cidx, nq), lay, tab, const)
             work = work + (lay.moment * skew_vee(R @ R0.transpose(-1, -2))).sum(-1)
         return -work
 
-    def grad_and_grad(q, lay, const, q_ref):
-        g = torch.func.grad(load_only)(q, lay, const, q_ref)
+    def grad_and_grad(q, lay, const, cidx, q_ref):
+        g = torch.func.grad(load_only)(q, lay, const, cidx, q_ref)
         return g, g
 
     return torch.func.vmap(torch.func.jacfwd(grad_and_grad, has_aux=True))
 
 
+def _expand(qc: torch.Tensor, cidx: torch.Tensor, nq: int) -> torch.Tensor:
+    return torch.zeros(qc.shape[:-1] + (nq,), dtype=qc.dtype, device=qc.device).scatter(
+        -1, cidx, qc)
+
+
 @torch.no_grad()
 def merit(q: torch.Tensor, prob: Problem, q_ref: torch.Tensor) -> torch.Tensor:
-    """Total potential ``(B,)`` [J] (the moment's virtual work taken about ``q_ref``)."""
+    """Total potential ``(B,)`` [J] at compact coordinates ``q (B, nq_c)`` (the moment's
+    virtual work taken about ``q_ref``)."""
     U = elastic_energy_maps(q, prob.maps)
     if prob.with_load:
         lay, tab, const = prob.lay, prob.tab, pose_constants(prob.maps)
-        p, R, _ = tip_pose(q, lay, tab, const)
+        nq, cidx = lay.qmask.shape[-1], prob.maps["cidx"]
+        p, R, _ = tip_pose(_expand(q, cidx, nq), lay, tab, const)
         U = U - (lay.force * p).sum(-1)
         if prob.has_moment:
-            _, R0, _ = tip_pose(q_ref, lay, tab, const)
+            _, R0, _ = tip_pose(_expand(q_ref, cidx, nq), lay, tab, const)
             U = U - (lay.moment * skew_vee(R @ R0.transpose(-1, -2))).sum(-1)
     return U
 
@@ -183,8 +195,11 @@ def newton(q: torch.Tensor, prob: Problem, L_char: torch.Tensor, *, method: str,
 
     A batch whose Hessians exceed ``CHUNK_BYTES`` is solved in cache-sized chunks (:func:`chunked`).
     """
-    return NewtonResult(*chunked(_newton, q, prob, L_char, method=method, tol=tol,
-                                 max_iter=max_iter))
+    nq = q.shape[-1]
+    qc, H, g, *rest = chunked(_newton, compact_q(q, prob.maps), prob, L_char, method=method,
+                              tol=tol, max_iter=max_iter)
+    return NewtonResult(expand_q(qc, prob.maps, nq), expand_hessian(H, prob.maps, nq),
+                        expand_q(g, prob.maps, nq), *rest)
 
 
 def chunked(fn, q: torch.Tensor, prob: Problem, *batched: torch.Tensor, **kwargs) -> tuple:
@@ -221,11 +236,11 @@ def _newton(q: torch.Tensor, prob: Problem, L_char: torch.Tensor, *, method: str
     lam = torch.zeros(B, dtype=dtype, device=device)
     tested = torch.zeros(B, dtype=torch.bool, device=device)   # passed the saddle test
     escapes = 0
-    act = active_index(prob.lay.qmask)
+    act = active_index(prob.maps["qmask"])
     final_check = False        # the last step was a tiny pure Newton step (see below)
     H = None                   # the Hessian of the last full evaluation
     for _ in range(max_iter + 1):
-        qmask = sub.lay.qmask
+        qmask = sub.maps["qmask"]
         if final_check:
             # After a pure Newton step of scaled size < FINAL_STEP, the new point is almost
             # surely converged: its residual needs the gradient only (a quarter of the cost at
@@ -267,7 +282,7 @@ def _newton(q: torch.Tensor, prob: Problem, L_char: torch.Tensor, *, method: str
                                                     (idx, q, g, H, scale, lam, tested, Lc))
             sub = subset(sub, keep)
             todo = torch.ones_like(lam, dtype=torch.bool)
-            qmask = sub.lay.qmask
+            qmask = sub.maps["qmask"]
             act = active_index(qmask)
         Hs, sc = compact_scaled(H, scale, act)
         gs = sc * torch.gather(g, 1, act)
@@ -321,7 +336,7 @@ def _saddle_test(q, H, g, scale, new, prob: Problem, L_char, act):
         return q, left
     sel, v = sel[neg], expand(vec[neg][:, :, 0] * sc[neg], a[neg], q.shape[-1])
     sub = subset(prob, sel, merit_only=True)
-    v = v * sub.lay.qmask
+    v = v * sub.maps["qmask"]
     sign = torch.where((g[sel] * v).sum(-1) > 0, -1.0, 1.0).to(v.dtype)
     v = sign[:, None] * v / (v.abs().amax(-1, keepdim=True) * L_char[sel, None]).clamp(min=1e-30)
     q0 = q[sel]

@@ -16,7 +16,7 @@ from torch.utils._pytree import tree_map
 
 from .equilibrium import Equilibrium
 from .implicit import differentiable_outputs
-from .mechanics import pose_constants, tip_pose
+from .mechanics import compact_q, expand_q, pose_constants, tip_pose
 from .newton import (
     KERNELS,
     Problem,
@@ -427,7 +427,8 @@ def _newton_step(q, prob: Problem):
 
 
 def _one_newton_step(q, prob: Problem):
-    qmask = prob.lay.qmask
+    q_full, q = q, compact_q(q, prob.maps)          # the step runs on the compact coordinates
+    qmask = prob.maps["qmask"]
     g, H = derivatives(q, prob)
     H.diagonal(dim1=-2, dim2=-1).add_(1.0 - qmask)
     _, scale = scaled_residual(g, H, torch.ones_like(g[:, 0]))
@@ -440,9 +441,11 @@ def _one_newton_step(q, prob: Problem):
     if indefinite.numel():
         sol_lu, info_lu = torch.linalg.solve_ex(Hs[indefinite], rhs[indefinite])
         sol[indefinite], info[indefinite] = sol_lu, info_lu
-    q1 = q + expand(sc * sol[..., 0], act, q.shape[-1]) * qmask
+    step = expand_q(expand(sc * sol[..., 0], act, q.shape[-1]) * qmask, prob.maps,
+                    q_full.shape[-1])
+    q1 = q_full + step
     ok = (info == 0) & torch.isfinite(q1).all(-1)
-    return torch.where(ok[:, None], q1, q), ok
+    return torch.where(ok[:, None], q1, q_full), ok
 
 
 def _loaded(F, M, opts: SolverOptions) -> torch.Tensor:
