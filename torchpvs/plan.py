@@ -61,6 +61,7 @@ class _Memo:
     psi0_guide: torch.Tensor
     lay: dict
     maps: dict
+    extra: dict = field(default_factory=dict)   # constants computed on demand (see cached)
 
 
 @dataclass(eq=False)
@@ -97,6 +98,19 @@ class Plan:
             if len(self._memo) > 4:
                 self._memo.pop(next(iter(self._memo)))
         return lay, maps
+
+
+    def cached(self, disc: Discretization, lay, name: str, compute):
+        """``compute()`` for a layout ``lay`` that :meth:`layout` returned for ``disc``, kept
+        with it while it is reused (e.g. the pose constants at the finer Magnus nodes of the
+        step-count check); computed afresh, and not kept, for any other layout."""
+        memo = self._memo.get((disc, lay.D.shape))
+        # A reused layout shares its masks with the memo (only angles and loads are replaced).
+        if memo is None or memo.lay.qmask is not lay.qmask:
+            return compute()
+        if name not in memo.extra:
+            memo.extra[name] = compute()
+        return memo.extra[name]
 
 
 _PLANS: OrderedDict = OrderedDict()

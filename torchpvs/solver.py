@@ -16,7 +16,7 @@ from torch.utils._pytree import tree_map
 
 from .equilibrium import Equilibrium
 from .implicit import differentiable_outputs
-from .mechanics import compact_q, expand_q, pose_constants, tip_pose
+from .mechanics import compact_q, expand_q, node_constants, pose_constants, tip_pose
 from .newton import (
     KERNELS,
     Problem,
@@ -519,7 +519,11 @@ def _refine_magnus(scene, tubes, D, A, F, M, res, opts: SolverOptions, plan: Pla
     order_err = res.get("error_estimate")  # a fixed order has no basis estimate: stays NaN
     while True:
         fine = replace(res["disc"], n_magnus=2 * m)
-        tip_fine, _, _ = tip_pose(res["q"], res["lay"], fine.tables(D.dtype, D.device))
+        tab = fine.tables(D.dtype, D.device)
+        lay = res["lay"]
+        const = plan.cached(res["disc"], lay, f"pose_constants_{2 * m}",
+                            lambda: node_constants(lay, tab["xm"]))  # noqa: B023 - used now
+        tip_fine, _, _ = tip_pose(res["q"], lay, tab, const)
         est = (tip_fine - res["tip"]).norm(dim=-1)
         if bool((est <= opts.accuracy / 2).all()) or 2 * m > _MAGNUS_MAX \
                 or (work is not None and work.exhausted):
