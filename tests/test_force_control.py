@@ -64,9 +64,7 @@ def test_all_torques_commanded_common_rotation_is_least_norm():
     assert res.converged.all(), res.reason
     rel = res.rotation[:, 1] - res.rotation[:, 0]
     assert (rel - (X_STAR[:, 3] - X_STAR[:, 2])).abs().max() < 1e-8
-    # Round-off level: the stiffness comes from a Hessian exact to ~1e-9 relative (the solver
-    # keeps the last iterate's Hessian after a final step below newton.FINAL_STEP).
-    assert (res.rotation.mean(-1) - (X_STAR[:, 2:] + shift).mean(-1)).abs().max() < 1e-11
+    assert (res.rotation.mean(-1) - (X_STAR[:, 2:] + shift).mean(-1)).abs().max() < 1e-12
     assert (res.zero_modes == 1).all()
     # the shape does not depend on the common rotation: tips agree up to a rotation about z
     r_ref = eq.tip_position[:, :2].norm(dim=-1)

@@ -115,3 +115,18 @@ def test_actuator_stiffness_of_selected_rows_equals_the_full_batch_rows():
     np.testing.assert_allclose(actuator_stiffness(eq, rows).numpy(), K[rows].numpy(),
                                rtol=1e-12, atol=1e-12)
     assert actuator_stiffness(eq, torch.tensor([], dtype=torch.long)).shape == (0, 4, 4)
+
+
+def test_actuator_stiffness_with_a_base_at_the_orifice_uses_the_general_rows():
+    """With D_1 = 0 (no guide twist coordinate for tube 1) the rotation rows cannot be read off
+    the Hessian: the general double-backward path gives the same stiffness as
+    control_jacobians; with every D_j > 0 both paths are exercised on one batch row each."""
+    from torchpvs.jacobians import actuator_stiffness
+
+    sc = tp.load_scene("renda2021_fig3")
+    for D in ([[0.0, 0.15]], [[0.05, 0.15]]):
+        eq = tp.solve(sc, insertion=torch.tensor(D, dtype=torch.float64),
+                      rotation=torch.tensor([[0.2, 1.1]], dtype=torch.float64))
+        np.testing.assert_allclose(actuator_stiffness(eq).numpy(),
+                                   eq.jacobians().actuator_stiffness.numpy(),
+                                   rtol=1e-7, atol=1e-9)

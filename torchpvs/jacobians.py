@@ -105,7 +105,9 @@ def actuator_stiffness(eq, rows=None) -> torch.Tensor:
 
     Without a tip moment, as the Schur complement ``U_xx - U_xq H^-1 U_qx``: the mixed and
     actuator blocks of the energy's Hessian by one double-backward pass over the batch repeated
-    ``2N`` times (:func:`_replicated`), and ``H^-1 U_qx`` from the equilibrium's adjoint
+    ``2N`` times (:func:`_replicated`; ``N`` times where every tube's base lies inside the
+    guide, the rotation rows then coming from ``H``: :func:`_rotation_rows_from_hessian`), and
+    ``H^-1 U_qx`` from the equilibrium's adjoint
     factorization (shared with the implicit backward). Under a tip moment (non-conservative)
     through the implicit backward, in one reverse pass over the repeated batch."""
     q0 = eq.q
@@ -115,30 +117,67 @@ def actuator_stiffness(eq, rows=None) -> torch.Tensor:
     if B == 0:
         return torch.zeros(0, m, m, dtype=q0.dtype, device=q0.device)
     lu, piv, scale = _adjoint_rows(eq, rows)
-    q, info, (D, A, F, M), tubes = _replicated(eq, m, rows)
-    D.requires_grad_(True)
-    A.requires_grad_(True)
-    pick = torch.eye(m, dtype=q.dtype, device=q.device).repeat(B, 1)        # (B m, 2N)
-    if info["has_moment"]:
-        info["_adjoint"] = tuple(t.repeat_interleave(m, 0) for t in (lu, piv, scale))
+    ctx = eq._ctx
+    qmask = ctx["implicit_info"]["qmask"][rows]                           # (B, nq)
+    N = m // 2
+    D0 = ctx["D"].detach()[rows]
+    if not ctx["implicit_info"]["has_moment"] and bool((qmask[:, :N] > 0).all()) \
+            and bool((D0 > 0).all()):
+        Uxq, Uxx = _rotation_rows_from_hessian(eq, rows, D0)
+    else:
+        q, info, (D, A, F, M), tubes = _replicated(eq, m, rows)
+        D.requires_grad_(True)
+        A.requires_grad_(True)
+        pick = torch.eye(m, dtype=q.dtype, device=q.device).repeat(B, 1)    # (B m, 2N)
+        if info["has_moment"]:
+            info["_adjoint"] = tuple(t.repeat_interleave(m, 0) for t in (lu, piv, scale))
+            with torch.enable_grad():
+                out = differentiable_outputs(q, info, D, A, F, M, tubes)
+                tau = torch.cat([out["forces"], out["torques"]], -1)
+                KD, KA = torch.autograd.grad((tau * pick).sum(), (D, A))
+            return torch.cat([KD, KA], -1).reshape(B, m, m)
+        q = q.requires_grad_(True)
         with torch.enable_grad():
-            out = differentiable_outputs(q, info, D, A, F, M, tubes)
-            tau = torch.cat([out["forces"], out["torques"]], -1)
-            KD, KA = torch.autograd.grad((tau * pick).sum(), (D, A))
-        return torch.cat([KD, KA], -1).reshape(B, m, m)
-    q = q.requires_grad_(True)
-    with torch.enable_grad():
-        lay = build_layout(tubes, D, A, F, M, info["loaded"], info["disc"])
-        U = potential(q, lay, info["tab"], None, info["with_load"])
-        tau = torch.cat(torch.autograd.grad(U.sum(), (D, A), create_graph=True), -1)
-        Uxq, UxD, UxA = torch.autograd.grad((tau * pick).sum(), (q, D, A))
-    qmask = eq._ctx["implicit_info"]["qmask"][rows]                       # (B, nq)
+            lay = build_layout(tubes, D, A, F, M, info["loaded"], info["disc"])
+            U = potential(q, lay, info["tab"], None, info["with_load"])
+            tau = torch.cat(torch.autograd.grad(U.sum(), (D, A), create_graph=True), -1)
+            Uxq, UxD, UxA = torch.autograd.grad((tau * pick).sum(), (q, D, A))
+        Uxx = torch.cat([UxD, UxA], -1).reshape(B, m, m)
     s = scale.sqrt()
     Uqx = (Uxq.reshape(B, m, -1) * qmask[:, None]).transpose(1, 2)          # (B, nq, 2N)
     # The factors are of the transposed scaled tangent (adjoint system): solve its transpose.
     Z = torch.linalg.lu_solve(lu, piv, Uqx / s[..., None], adjoint=True) / s[..., None]
-    K = torch.cat([UxD, UxA], -1).reshape(B, m, m) - Uqx.transpose(1, 2) @ (Z * qmask[..., None])
+    K = Uxx - Uqx.transpose(1, 2) @ (Z * qmask[..., None])
     return 0.5 * (K + K.transpose(1, 2))
+
+
+def _rotation_rows_from_hessian(eq, rows, D0):
+    """``(U_xq (B, 2N, nq), U_xx (B, 2N, 2N))`` with the insertion rows by one double-backward
+    pass over the batch repeated ``N`` times (not ``2N``) and the rotation rows read off the
+    equilibrium's Hessian: the potential depends on ``alpha_j`` and the guide twist ``w_j``
+    only through ``alpha_j + D_j w_j`` (plus the guide's ``1/2 GJ_j D_j w_j^2``), so where every
+    ``D_j > 0`` (``w_j`` a coordinate) ``U_{alpha_j .} = (H[w_j, .] - GJ_j D_j e_{w_j}) / D_j``
+    and ``U_{alpha_j alpha_k} = (H[w_j, w_k] - delta_jk GJ_j D_j) / (D_j D_k)``."""
+    B, N = D0.shape
+    q, info, (D, A, F, M), tubes = _replicated(eq, N, rows)
+    pick = torch.eye(N, dtype=q.dtype, device=q.device).repeat(B, 1)        # (B N, N)
+    D, A, q = (t.requires_grad_(True) for t in (D, A, q))
+    with torch.enable_grad():
+        lay = build_layout(tubes, D, A, F, M, info["loaded"], info["disc"])
+        U = potential(q, lay, info["tab"], None, info["with_load"])
+        tau_D = torch.autograd.grad(U.sum(), D, create_graph=True)[0]
+        UDq, UDD, UDA = torch.autograd.grad((tau_D * pick).sum(), (q, D, A))
+    H = eq._ctx["implicit_info"]["H"][rows]                                # (B, nq, nq)
+    GJD = torch.diag_embed(tubes.GJ.detach().expand(B, N) * D0)            # (B, N, N)
+    UAq = H[:, :N, :].clone()
+    UAq[:, :, :N] -= GJD
+    UAq = UAq / D0[:, :, None]
+    UAA = (H[:, :N, :N] - GJD) / (D0[:, :, None] * D0[:, None, :])
+    UDA = UDA.reshape(B, N, N)
+    Uxq = torch.cat([UDq.reshape(B, N, -1), UAq], 1)
+    Uxx = torch.cat([torch.cat([UDD.reshape(B, N, N), UDA], -1),
+                     torch.cat([UDA.transpose(1, 2), UAA], -1)], 1)
+    return Uxq, Uxx
 
 
 def control_jacobians(eq, *, rank_tol: float = 1e-9) -> ControlJacobians:

@@ -417,12 +417,6 @@ def _elastic_grad(q: torch.Tensor, maps: dict[str, torch.Tensor]):
     return grad, (u, Ru, EIw, hh, bflat)
 
 
-def elastic_grad(q: torch.Tensor, maps: dict[str, torch.Tensor]) -> torch.Tensor:
-    """Exact gradient ``(B, nq)`` of the elastic energy (a quarter of the cost of
-    :func:`elastic_grad_hess` at large batches: no Hessian assembly)."""
-    return _elastic_grad(q, maps)[0]
-
-
 def elastic_grad_hess(q: torch.Tensor, maps: dict[str, torch.Tensor]):
     """Exact gradient ``(B, nq)`` and Hessian ``(B, nq, nq)`` of the elastic energy.
 

@@ -27,7 +27,6 @@ from torch.utils._pytree import tree_map
 from .mechanics import (
     compact_q,
     elastic_energy_maps,
-    elastic_grad,
     elastic_grad_hess,
     expand_hessian,
     expand_q,
@@ -44,8 +43,7 @@ class NewtonResult(NamedTuple):
     """Kernel output for a batch of ``B`` elements with ``nq`` (padded) coordinates."""
 
     q: torch.Tensor            # (B, nq) solution (inactive coordinates 0)
-    H: torch.Tensor            # (B, nq, nq) Hessian at q, or at the last Newton iterate when the
-    #                            final step was below FINAL_STEP (identity on inactive rows)
+    H: torch.Tensor            # (B, nq, nq) Hessian at q (identity on inactive rows)
     g: torch.Tensor            # (B, nq) gradient at q
     converged: torch.Tensor    # (B,) bool
     residual: torch.Tensor     # (B,) scaled residual (SolverOptions.tol)
@@ -177,11 +175,6 @@ def scaled_residual(g: torch.Tensor, H: torch.Tensor, L_char: torch.Tensor):
     return res, scale
 
 
-#: A pure Newton step whose scaled size (strain change x length, rad) is below this ends
-#: the iteration with a gradient-only check (the Hessian then returned is the previous
-#: point's, within this distance of the solution).
-FINAL_STEP = 1e-7
-
 CHUNK_BYTES = 4 << 20    # Hessian bytes per chunk of a large batch (cache-sized working set)
 
 
@@ -237,23 +230,11 @@ def _newton(q: torch.Tensor, prob: Problem, L_char: torch.Tensor, *, method: str
     tested = torch.zeros(B, dtype=torch.bool, device=device)   # passed the saddle test
     escapes = 0
     act = active_index(prob.maps["qmask"])
-    final_check = False        # the last step was a tiny pure Newton step (see below)
-    H = None                   # the Hessian of the last full evaluation
     for _ in range(max_iter + 1):
         qmask = sub.maps["qmask"]
-        if final_check:
-            # After a pure Newton step of scaled size < FINAL_STEP, the new point is almost
-            # surely converged: its residual needs the gradient only (a quarter of the cost at
-            # large batches), and the Hessian of the previous point -- within FINAL_STEP of
-            # this one, so relatively that close to the exact one -- is kept.
-            g = elastic_grad(q, sub.maps)
-            res, scale = scaled_residual(g, H, Lc)
-            final_check = bool((res < tol).all())
-        if not final_check:
-            g, H = derivatives(q, sub)
-            H.diagonal(dim1=-2, dim2=-1).add_(1.0 - qmask)
-            res, scale = scaled_residual(g, H, Lc)
-        final_check = False
+        g, H = derivatives(q, sub)
+        H.diagonal(dim1=-2, dim2=-1).add_(1.0 - qmask)
+        res, scale = scaled_residual(g, H, Lc)
         conv = res < tol
         residual[idx] = res
         if method == "minimize" and escapes < 8:
@@ -293,12 +274,9 @@ def _newton(q: torch.Tensor, prob: Problem, L_char: torch.Tensor, *, method: str
             # strain by more than 1e-3 rad over the robot's length is accepted without an energy
             # evaluation -- the quadratic model's relative error is O(1e-3) there, far inside
             # Armijo's margin (the decrease is -g.s/2 against the 1e-4 g.s asked for).
-            size = step.abs().amax(-1) * Lc
-            trust = (lam == 0) & (size < 1e-3)
+            trust = (lam == 0) & (step.abs().amax(-1) * Lc < 1e-3)
             q_new, accepted = _line_search(q, step, g, sub, todo, trust)
             lam = torch.where(accepted, lam * 0.25, torch.clamp(lam * 4 + 1e-6, max=1e6))
-            final_check = not sub.with_load and bool(
-                (~todo | (trust & (size < FINAL_STEP))).all())
         else:
             sol, _ = torch.linalg.solve_ex(Hs + 1e-14 * eye[:act.shape[1], :act.shape[1]],
                                            -gs[..., None])
