@@ -422,12 +422,13 @@ def _order_estimate(scene, tubes, D, A, F, M, res, opts: SolverOptions, plan: Pl
 def _newton_step(q, prob: Problem):
     """One undamped Newton step (Jacobi-scaled; Cholesky, and LU where the Hessian is indefinite,
     as at an unstable equilibrium). Returns the new coordinates (``q`` where the step failed)
-    and the success mask. Large batches go in cache-sized chunks (see newton.CHUNK_BYTES)."""
-    return chunked(_one_newton_step, q, prob)
+    and the success mask. The step runs on the compact coordinates (mechanics.build_maps);
+    large batches go in cache-sized chunks of them (see newton.CHUNK_BYTES)."""
+    qc, ok = chunked(_one_newton_step, compact_q(q, prob.maps), prob)
+    return torch.where(ok[:, None], expand_q(qc, prob.maps, q.shape[-1]), q), ok
 
 
 def _one_newton_step(q, prob: Problem):
-    q_full, q = q, compact_q(q, prob.maps)          # the step runs on the compact coordinates
     qmask = prob.maps["qmask"]
     g, H = derivatives(q, prob)
     H.diagonal(dim1=-2, dim2=-1).add_(1.0 - qmask)
@@ -441,11 +442,9 @@ def _one_newton_step(q, prob: Problem):
     if indefinite.numel():
         sol_lu, info_lu = torch.linalg.solve_ex(Hs[indefinite], rhs[indefinite])
         sol[indefinite], info[indefinite] = sol_lu, info_lu
-    step = expand_q(expand(sc * sol[..., 0], act, q.shape[-1]) * qmask, prob.maps,
-                    q_full.shape[-1])
-    q1 = q_full + step
+    q1 = q + expand(sc * sol[..., 0], act, q.shape[-1]) * qmask
     ok = (info == 0) & torch.isfinite(q1).all(-1)
-    return torch.where(ok[:, None], q1, q_full), ok
+    return torch.where(ok[:, None], q1, q), ok
 
 
 def _loaded(F, M, opts: SolverOptions) -> torch.Tensor:
