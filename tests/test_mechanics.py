@@ -52,9 +52,9 @@ def test_analytic_derivatives_match_autograd(order, scene_name):
     q = torch.randn(B, nq, dtype=dt) * 5 * m
     # The maps work on the compact coordinates (every active one kept): compare there, and
     # check that the left-out ones are inactive.
-    g, H = elastic_grad_hess(compact_q(q, maps), maps)
-    g, H = expand_q(g, maps, nq), expand_hessian(H, maps, nq)
-    kept = expand_q(torch.ones_like(maps["qmask"]), maps, nq)
+    g, H = elastic_grad_hess(compact_q(q, maps["cidx"]), maps)
+    g, H = expand_q(g, maps["cidx"], nq), expand_hessian(H, maps["cidx"], nq)
+    kept = expand_q(torch.ones_like(maps["qmask"]), maps["cidx"], nq)
     assert bool((kept >= m).all())
 
     def f(qq, lay_b):
@@ -63,8 +63,8 @@ def test_analytic_derivatives_match_autograd(order, scene_name):
     gA = torch.func.vmap(torch.func.grad(f))(q, lay)
     HA = torch.func.vmap(torch.func.hessian(f))(q, lay)
     mm = m[:, :, None] * m[:, None, :]
-    assert torch.allclose(elastic_energy_maps(compact_q(q, maps), maps), f(q, lay), rtol=1e-13,
-                          atol=1e-15)
+    assert torch.allclose(elastic_energy_maps(compact_q(q, maps["cidx"]), maps), f(q, lay),
+                          rtol=1e-13, atol=1e-15)
     assert ((g - gA) * m).abs().max() <= 1e-12 * gA.abs().max()
     assert ((H - HA) * mm).abs().max() <= 1e-12 * HA.abs().max()
 

@@ -168,7 +168,7 @@ class Equilibrium:
             tau = _stability_threshold(H.dtype)
             stable = torch.linalg.cholesky_ex(Hs - tau * torch.diag_embed(active))[1] == 0
             dofs = qmask.sum(-1).long()
-            energy = elastic_energy_maps(compact_q(q, res["maps"]), res["maps"])
+            energy = elastic_energy_maps(compact_q(q, res["maps"]["cidx"]), res["maps"])
             if res["with_load"]:
                 energy = energy - (lay.force * res["tip"]).sum(-1)
         forces = torques = insert_side = None

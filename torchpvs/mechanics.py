@@ -318,22 +318,21 @@ def build_maps(lay: Layout, tab: dict[str, torch.Tensor],
             "phi": phi, "Qb": tab["Q_q"], **_node_tables(phi, tab["Q_q"]), **pose}
 
 
-def compact_q(q: torch.Tensor, maps: dict[str, torch.Tensor]) -> torch.Tensor:
-    """``(B, nq) -> (B, nq_c)``: the coordinates that :func:`build_maps` keeps."""
-    return torch.gather(q, -1, maps["cidx"].expand(q.shape[:-1] + maps["cidx"].shape[-1:]))
+def compact_q(q: torch.Tensor, cidx: torch.Tensor) -> torch.Tensor:
+    """``(..., nq) -> (..., nq_c)``: the coordinates ``cidx = maps["cidx"]`` that
+    :func:`build_maps` keeps."""
+    return torch.gather(q, -1, cidx.expand(q.shape[:-1] + cidx.shape[-1:]))
 
 
-def expand_q(qc: torch.Tensor, maps: dict[str, torch.Tensor], nq: int) -> torch.Tensor:
-    """``(B, nq_c) -> (B, nq)``, zero on the coordinates left out (all inactive)."""
-    cidx = maps["cidx"].expand(qc.shape)
+def expand_q(qc: torch.Tensor, cidx: torch.Tensor, nq: int) -> torch.Tensor:
+    """``(..., nq_c) -> (..., nq)``, zero on the coordinates left out (all inactive)."""
     return torch.zeros(qc.shape[:-1] + (nq,), dtype=qc.dtype, device=qc.device).scatter(
-        -1, cidx, qc)
+        -1, cidx.expand(qc.shape), qc)
 
 
-def expand_hessian(Hc: torch.Tensor, maps: dict[str, torch.Tensor], nq: int) -> torch.Tensor:
+def expand_hessian(Hc: torch.Tensor, cidx: torch.Tensor, nq: int) -> torch.Tensor:
     """``(B, nq_c, nq_c) -> (B, nq, nq)``, identity on the coordinates left out."""
     B, nc, _ = Hc.shape
-    cidx = maps["cidx"]
     H = torch.zeros(B, nq * nq, dtype=Hc.dtype, device=Hc.device)
     flat = (cidx[:, :, None] * nq + cidx[:, None, :]).reshape(B, nc * nc)
     H.scatter_(1, flat, Hc.reshape(B, nc * nc))

@@ -123,11 +123,11 @@ def _load_hessian(tab, has_moment: bool):
     def load_only(q, lay, const, cidx, q_ref):
         # q: compact coordinates (build_maps); the pose needs all of them.
         nq = lay.qmask.shape[-1]
-        p, R, _ = tip_pose(_expand(q, cidx, nq), lay, tab, const)
+        p, R, _ = tip_pose(expand_q(q, cidx, nq), lay, tab, const)
         work = (lay.force * p).sum(-1)
         if has_moment:
             with torch.no_grad():
-                _, R0, _ = tip_pose(_expand(q_ref, cidx, nq), lay, tab, const)
+                _, R0, _ = tip_pose(expand_q(q_ref, cidx, nq), lay, tab, const)
             work = work + (lay.moment * skew_vee(R @ R0.transpose(-1, -2))).sum(-1)
         return -work
 
@@ -138,11 +138,6 @@ def _load_hessian(tab, has_moment: bool):
     return torch.func.vmap(torch.func.jacfwd(grad_and_grad, has_aux=True))
 
 
-def _expand(qc: torch.Tensor, cidx: torch.Tensor, nq: int) -> torch.Tensor:
-    return torch.zeros(qc.shape[:-1] + (nq,), dtype=qc.dtype, device=qc.device).scatter(
-        -1, cidx, qc)
-
-
 @torch.no_grad()
 def merit(q: torch.Tensor, prob: Problem, q_ref: torch.Tensor) -> torch.Tensor:
     """Total potential ``(B,)`` [J] at compact coordinates ``q (B, nq_c)`` (the moment's
@@ -151,10 +146,10 @@ def merit(q: torch.Tensor, prob: Problem, q_ref: torch.Tensor) -> torch.Tensor:
     if prob.with_load:
         lay, tab, const = prob.lay, prob.tab, pose_constants(prob.maps)
         nq, cidx = lay.qmask.shape[-1], prob.maps["cidx"]
-        p, R, _ = tip_pose(_expand(q, cidx, nq), lay, tab, const)
+        p, R, _ = tip_pose(expand_q(q, cidx, nq), lay, tab, const)
         U = U - (lay.force * p).sum(-1)
         if prob.has_moment:
-            _, R0, _ = tip_pose(_expand(q_ref, cidx, nq), lay, tab, const)
+            _, R0, _ = tip_pose(expand_q(q_ref, cidx, nq), lay, tab, const)
             U = U - (lay.moment * skew_vee(R @ R0.transpose(-1, -2))).sum(-1)
     return U
 
@@ -188,11 +183,11 @@ def newton(q: torch.Tensor, prob: Problem, L_char: torch.Tensor, *, method: str,
 
     A batch whose Hessians exceed ``CHUNK_BYTES`` is solved in cache-sized chunks (:func:`chunked`).
     """
-    nq = q.shape[-1]
-    qc, H, g, *rest = chunked(_newton, compact_q(q, prob.maps), prob, L_char, method=method,
+    nq, cidx = q.shape[-1], prob.maps["cidx"]
+    qc, H, g, *rest = chunked(_newton, compact_q(q, cidx), prob, L_char, method=method,
                               tol=tol, max_iter=max_iter)
-    return NewtonResult(expand_q(qc, prob.maps, nq), expand_hessian(H, prob.maps, nq),
-                        expand_q(g, prob.maps, nq), *rest)
+    return NewtonResult(expand_q(qc, cidx, nq), expand_hessian(H, cidx, nq),
+                        expand_q(g, cidx, nq), *rest)
 
 
 def chunked(fn, q: torch.Tensor, prob: Problem, *batched: torch.Tensor, **kwargs) -> tuple:

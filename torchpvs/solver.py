@@ -424,8 +424,9 @@ def _newton_step(q, prob: Problem):
     as at an unstable equilibrium). Returns the new coordinates (``q`` where the step failed)
     and the success mask. The step runs on the compact coordinates (mechanics.build_maps);
     large batches go in cache-sized chunks of them (see newton.CHUNK_BYTES)."""
-    qc, ok = chunked(_one_newton_step, compact_q(q, prob.maps), prob)
-    return torch.where(ok[:, None], expand_q(qc, prob.maps, q.shape[-1]), q), ok
+    cidx = prob.maps["cidx"]
+    qc, ok = chunked(_one_newton_step, compact_q(q, cidx), prob)
+    return torch.where(ok[:, None], expand_q(qc, cidx, q.shape[-1]), q), ok
 
 
 def _one_newton_step(q, prob: Problem):
