@@ -99,7 +99,6 @@ class Plan:
                 self._memo.pop(next(iter(self._memo)))
         return lay, maps
 
-
     def cached(self, disc: Discretization, lay, name: str, compute):
         """``compute()`` for a layout ``lay`` that :meth:`layout` returned for ``disc``, kept
         with it while it is reused (e.g. the pose constants at the finer Magnus nodes of the
