@@ -6,6 +6,7 @@ import torch
 
 import torchpvs as tp
 from torchpvs.plan import plan_for
+from torchpvs.sections import n_coordinates
 
 
 def test_plan_cache_keeps_constants_per_reused_layout_only():
@@ -18,7 +19,7 @@ def test_plan_cache_keeps_constants_per_reused_layout_only():
     D = torch.tensor([scene.actuation.insertion], dtype=torch.float64)
     Z = torch.zeros(1, 3, dtype=torch.float64)
     off = torch.zeros(1, dtype=torch.bool)
-    nq = 2 + 2 * 2 * 4 * disc.n_basis
+    nq = n_coordinates(2, disc.n_basis)
     calls = []
 
     def compute():

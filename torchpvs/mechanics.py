@@ -393,12 +393,19 @@ def elastic_energy_maps(q: torch.Tensor, maps: dict[str, torch.Tensor]) -> torch
     return (dens * maps["W"]).sum((-1, -2)) + guide + maps["guide_const"]
 
 
-def _elastic_grad(q: torch.Tensor, maps: dict[str, torch.Tensor]):
-    """The gradient and the node quantities the Hessian reuses."""
+def elastic_grad_hess(q: torch.Tensor, maps: dict[str, torch.Tensor]):
+    """Exact gradient ``(B, nq)`` and Hessian ``(B, nq, nq)`` of the elastic energy.
+
+    The Hessian is assembled as ``T + T^T`` with ``T = H_const / 2 + b^T V`` (one batched GEMM over
+    the ``S N`` angle bases) plus the within-section blocks written through strided views:
+    every term vanishes on inactive coordinates by construction (zero quadrature weight or zero
+    stiffness), so no dense mask pass is made."""
     u, _, dp, Ru, us = _local(q, maps)
     B, nq = q.shape
     bvec, phi, Qb = maps["bvec"], maps["phi"], maps["Qb"]
     _, S, N, _ = bvec.shape
+    n = phi.shape[-1]
+    C = 2 + N
     W = maps["W"][..., None]                                                # (B, S, Q, 1)
     EIw = W * maps["EIp"]
     diff = u[..., None, :] - Ru
@@ -413,22 +420,6 @@ def _elastic_grad(q: torch.Tensor, maps: dict[str, torch.Tensor]):
     bflat = bvec.reshape(B, S * N, nq)
     grad = (gpsi.sum(2).reshape(B, 1, S * N) @ bflat)[:, 0] + maps["guide"] * q
     grad[:, N:] += gX.reshape(B, -1) * maps["qmask"][:, N:]
-    return grad, (u, Ru, EIw, hh, bflat)
-
-
-def elastic_grad_hess(q: torch.Tensor, maps: dict[str, torch.Tensor]):
-    """Exact gradient ``(B, nq)`` and Hessian ``(B, nq, nq)`` of the elastic energy.
-
-    The Hessian is assembled as ``T + T^T`` with ``T = H_const / 2 + b^T V`` (one batched GEMM over
-    the ``S N`` angle bases) plus the within-section blocks written through strided views:
-    every term vanishes on inactive coordinates by construction (zero quadrature weight or zero
-    stiffness), so no dense mask pass is made."""
-    grad, (u, Ru, EIw, hh, bflat) = _elastic_grad(q, maps)
-    B, nq = q.shape
-    bvec = maps["bvec"]
-    _, S, N, _ = bvec.shape
-    n = maps["phi"].shape[-1]
-    C = 2 + N
     # Angle terms of the Hessian, reduced over nodes per (section, tube).
     hpp = EIw * (u[..., None, :] * Ru).sum(-1)                              # (B, S, Q, N)
     alpha = hpp.sum(2)                                                      # (B, S, N)

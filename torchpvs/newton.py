@@ -22,7 +22,6 @@ from collections.abc import Callable
 from typing import NamedTuple
 
 import torch
-from torch.utils._pytree import tree_map
 
 from .mechanics import (
     compact_q,
@@ -108,12 +107,8 @@ def derivatives(q: torch.Tensor, prob: Problem):
     Magnus chain."""
     g, H = elastic_grad_hess(q, prob.maps)
     if prob.with_load:
-        args = (q, prob.lay, pose_constants(prob.maps), prob.maps["cidx"], q.detach())
-        # torch.func transforms record autograd, which cannot save inference-mode tensors.
-        with torch.inference_mode(False):
-            if torch.is_inference_mode_enabled() or q.is_inference():
-                args = tree_map(lambda t: t.clone() if t.is_inference() else t, args)
-            Hl, gl = _load_hessian(prob.tab, prob.has_moment)(*args)
+        Hl, gl = _load_hessian(prob.tab, prob.has_moment)(
+            q, prob.lay, pose_constants(prob.maps), prob.maps["cidx"], q.detach())
         g = g + gl
         H = H + 0.5 * (Hl + Hl.transpose(-1, -2))
     return g, H
