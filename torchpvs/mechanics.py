@@ -30,6 +30,20 @@ __all__ = ["compact_q", "elastic_energy", "expand_hessian", "expand_q", "magnus_
            "tip_pose"]
 
 
+def sum_dim(x: torch.Tensor, dim: int) -> torch.Tensor:
+    """``x.sum(dim)``, by explicit adds when the dimension is short (tubes, components): torch's
+    CPU reduction over a dimension of size 2-4 is 10-50x slower than an add of its slices
+    (float64, torch 2.13; benchmarks/fast_path.py measures the solver with it)."""
+    n = x.shape[dim]
+    if n > 4 or n < 2:
+        return x.sum(dim)
+    parts = x.unbind(dim)
+    out = parts[0] + parts[1]
+    for p in parts[2:]:
+        out = out + p
+    return out
+
+
 def poly(coef: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
     """``coef (..., N, 3, P)``, ``t (..., N)`` -> ``(..., N, 3)``."""
     P = coef.shape[-1]
@@ -110,8 +124,10 @@ def node_fields(q: torch.Tensor, lay: Layout, xi: torch.Tensor,
            (c @ Qb.transpose(-1, -2)).transpose(-1, -2) + const["presc_local"])
     cs, sn = torch.cos(psi), torch.sin(psi)
     ux, uy = ustar[..., 0], ustar[..., 1]
-    Ru = torch.stack([cs * ux - sn * uy, sn * ux + cs * uy], -1)
-    u = u + presc[..., None, None] * (Ru * present[..., None, :, None]).sum(-2)
+    Rx, Ry = cs * ux - sn * uy, sn * ux + cs * uy
+    Ru = torch.stack([Rx, Ry], -1)
+    held = (presc[..., None] * present)[..., None, :]                    # (..., S, 1, N)
+    u = u + torch.stack([sum_dim(Rx * held, -1), sum_dim(Ry * held, -1)], -1)
     dpsi = dpsi + pmask[..., None, :] * ustar[..., 2]
     return {"s": const["s"], "u": u, "psi": psi, "dpsi": dpsi, "ustar": ustar, "Ru": Ru,
             "inc": inc, "psi_start": psi_start, "psi0": psi0}
@@ -122,12 +138,14 @@ def elastic_energy(q: torch.Tensor, lay: Layout,
     """Stored elastic energy ``(...,)`` [J] of the whole robot, guide included."""
     f = node_fields(q, lay, tab["xq"], tab["phi_q"], tab["Q_q"])
     EI, GJ = lay.EI[..., None, None, :], lay.GJ[..., None, None, :]
-    diff = f["u"][..., None, :] - f["Ru"]
-    bend = 0.5 * EI * (diff**2).sum(-1)
+    Rx, Ry = f["Ru"].unbind(-1)
+    ux, uy = f["u"].unbind(-1)
+    dx, dy = ux[..., None] - Rx, uy[..., None] - Ry
+    bend = 0.5 * EI * (dx * dx + dy * dy)
     tors = 0.5 * GJ * (f["dpsi"] - f["ustar"][..., 2]) ** 2
-    dens = ((bend + tors) * lay.present[..., None, :]).sum(-1)          # (..., S, Q)
+    dens = sum_dim((bend + tors) * lay.present[..., None, :], -1)       # (..., S, Q)
     w, _, _ = split_q(q, lay)
-    guide = (0.5 * lay.GJ * lay.D * w**2).sum(-1)
+    guide = sum_dim(0.5 * lay.GJ * lay.D * w**2, -1)
     return (dens * lay.W).sum((-1, -2)) + guide + lay.guide_const
 
 
@@ -191,8 +209,8 @@ def tip_pose(q: torch.Tensor, lay: Layout, tab: dict[str, torch.Tensor],
     :func:`node_constants` of the Magnus nodes (:func:`pose_constants`), or ``None``."""
     poses, f = section_start_poses(q, lay, tab, const)
     g = poses[..., -1, :, :]
-    psi_tip = f["psi0"] + f["inc"].sum(-2)                                  # (..., N)
-    angle = (psi_tip * lay.tip_tube).sum(-1)
+    psi_tip = f["psi0"] + sum_dim(f["inc"], -2)                             # (..., N)
+    angle = sum_dim(psi_tip * lay.tip_tube, -1)
     R = g[..., :3, :3] @ rot_z(angle)
     return g[..., :3, 3], R, psi_tip
 
@@ -300,7 +318,7 @@ def build_maps(lay: Layout, tab: dict[str, torch.Tensor],
     Pn = sections(lay.present.detach())[:, :, None, :].expand(B, S, Q, N)
     EIp = lay.EI.detach()[:, None, None, :] * Pn
     GJp = lay.GJ.detach()[:, None, None, :] * Pn
-    A = torch.einsum("bsq,qp,qr->bspr", W * EIp.sum(-1), phi, phi)          # bending blocks
+    A = torch.einsum("bsq,qp,qr->bspr", W * sum_dim(EIp, -1), phi, phi)          # bending blocks
     T = torch.einsum("bsqj,qp,qr->bsjpr", W[..., None] * GJp, phi, phi)     # torsion blocks
     guide = torch.zeros(B, nc, dtype=dtype, device=device)
     guide[:, :N] = lay.GJ.detach() * lay.D.detach() * qmask[:, :N]
@@ -312,7 +330,9 @@ def build_maps(lay: Layout, tab: dict[str, torch.Tensor],
     cc = _section_blocks(H_const, N, S, C, n).diagonal(dim1=1, dim2=3)   # (B, n, n, S, C)
     cc[..., :2] = A.permute(0, 2, 3, 1)[..., None]
     cc[..., 2:] = T.permute(0, 3, 4, 1, 2)
-    return {"ustar": ustar.detach(), "W": W, "EIp": EIp, "GJp": GJp, "H_const": H_const,
+    EIw = W[..., None] * EIp                      # node weights x stiffness (B, S, Q, N)
+    return {"ustar": ustar.detach(), "EIw": EIw, "EIws": sum_dim(EIw, -1),
+            "GJw": W[..., None] * GJp, "H_const": H_const,
             "guide": guide, "guide_const": lay.guide_const.detach(), "h": h,
             "qmask": qmask, "psi0": lay.psi0.detach(), "bvec": bvec, "cidx": cidx,
             "phi": phi, "Qb": tab["Q_q"], **_node_tables(phi, tab["Q_q"]), **pose}
@@ -370,27 +390,32 @@ def _section_blocks(H: torch.Tensor, N: int, S: int, C: int, n: int) -> torch.Te
 
 
 def _local(q: torch.Tensor, maps: dict[str, torch.Tensor]):
+    """Node fields on the compact coordinates: backbone bending ``ux, uy (B, S, Q)``, torsions
+    ``dp (B, S, Q, N)``, ``Rz(psi) u*_xy`` as ``Rx, Ry (B, S, Q, N)`` and the precurvatures
+    ``us (B, S, Q, N, 3)``. Components are kept apart: reductions over a size-2 dimension are
+    slow (:func:`sum_dim`)."""
     bvec = maps["bvec"]
     B, S, N, _ = bvec.shape
     Q = maps["phi"].shape[0]
     X = (q[:, N:] * maps["qmask"][:, N:]).reshape(B, S, 2 + N, -1)
     Y = (X @ maps["values_T"]).transpose(-1, -2)                          # (B, S, 2Q, C)
-    u, dp, loc = Y[:, :, :Q, :2], Y[:, :, :Q, 2:], Y[:, :, Q:, 2:]
+    ux, uy, dp, loc = Y[:, :, :Q, 0], Y[:, :, :Q, 1], Y[:, :, :Q, 2:], Y[:, :, Q:, 2:]
     base = maps["psi0"][:, None, :] + (bvec.reshape(B, S * N, -1) @ q[:, :, None]).reshape(B, S, N)
     psi = base[:, :, None, :] + 0.5 * maps["h"][:, :, None, None] * loc
     us = maps["ustar"]
     cs, sn = torch.cos(psi), torch.sin(psi)
-    Ru = torch.stack([cs * us[..., 0] - sn * us[..., 1], sn * us[..., 0] + cs * us[..., 1]], -1)
-    return u, psi, dp, Ru, us
+    usx, usy = us[..., 0], us[..., 1]
+    return ux, uy, dp, cs * usx - sn * usy, sn * usx + cs * usy, us
 
 
 def elastic_energy_maps(q: torch.Tensor, maps: dict[str, torch.Tensor]) -> torch.Tensor:
     """Same value as :func:`elastic_energy`, through the precomputed structure (``q (B, nq)``)."""
-    u, _, dp, Ru, us = _local(q, maps)
-    diff = u[..., None, :] - Ru
-    dens = 0.5 * (maps["EIp"] * (diff**2).sum(-1) + maps["GJp"] * (dp - us[..., 2]) ** 2).sum(-1)
+    ux, uy, dp, Rx, Ry, us = _local(q, maps)
+    dx, dy = ux[..., None] - Rx, uy[..., None] - Ry
+    tors = dp - us[..., 2]
+    dens = 0.5 * sum_dim(maps["EIw"] * (dx * dx + dy * dy) + maps["GJw"] * tors * tors, -1)
     guide = 0.5 * (maps["guide"] * q**2).sum(-1)
-    return (dens * maps["W"]).sum((-1, -2)) + guide + maps["guide_const"]
+    return dens.sum((-1, -2)) + guide + maps["guide_const"]
 
 
 def elastic_grad_hess(q: torch.Tensor, maps: dict[str, torch.Tensor]):
@@ -400,35 +425,33 @@ def elastic_grad_hess(q: torch.Tensor, maps: dict[str, torch.Tensor]):
     the ``S N`` angle bases) plus the within-section blocks written through strided views:
     every term vanishes on inactive coordinates by construction (zero quadrature weight or zero
     stiffness), so no dense mask pass is made."""
-    u, _, dp, Ru, us = _local(q, maps)
+    ux, uy, dp, Rx, Ry, us = _local(q, maps)
     B, nq = q.shape
     bvec, phi, Qb = maps["bvec"], maps["phi"], maps["Qb"]
     _, S, N, _ = bvec.shape
     n = phi.shape[-1]
     C = 2 + N
-    W = maps["W"][..., None]                                                # (B, S, Q, 1)
-    EIw = W * maps["EIp"]
-    diff = u[..., None, :] - Ru
-    gu = (EIw[..., None] * diff).sum(-2)                                    # (B, S, Q, 2)
-    cross = Ru[..., 0] * u[..., None, 1] - Ru[..., 1] * u[..., None, 0]
-    gpsi = -EIw * cross                                                     # (B, S, Q, N)
-    gdp = W * maps["GJp"] * (dp - us[..., 2])
+    EIw, EIs = maps["EIw"], maps["EIws"]                                    # (B, S, Q, N), sum
+    ERx, ERy = EIw * Rx, EIw * Ry
+    gu = torch.stack([EIs * ux - sum_dim(ERx, -1), EIs * uy - sum_dim(ERy, -1)], -2)
+    gpsi = ERy * ux[..., None] - ERx * uy[..., None]                        # (B, S, Q, N)
+    gdp = maps["GJw"] * (dp - us[..., 2])
     hh = 0.5 * maps["h"][:, :, None, None]
-    gX = torch.cat([gu.transpose(-1, -2) @ phi,
+    gX = torch.cat([gu @ phi,
                     gdp.transpose(-1, -2) @ phi + hh * (gpsi.transpose(-1, -2) @ Qb)],
                    2)                                                       # (B, S, C, n)
     bflat = bvec.reshape(B, S * N, nq)
     grad = (gpsi.sum(2).reshape(B, 1, S * N) @ bflat)[:, 0] + maps["guide"] * q
     grad[:, N:] += gX.reshape(B, -1) * maps["qmask"][:, N:]
     # Angle terms of the Hessian, reduced over nodes per (section, tube).
-    hpp = EIw * (u[..., None, :] * Ru).sum(-1)                              # (B, S, Q, N)
+    hpp = ERx * ux[..., None] + ERy * uy[..., None]                         # (B, S, Q, N)
     alpha = hpp.sum(2)                                                      # (B, S, N)
     HQ = hpp.transpose(-1, -2) @ maps["Q_QQ"]                               # (B, S, N, n + n^2)
     beta = hh * HQ[..., :n]                                                 # (B, S, N, n)
     gamma = hh[..., None] ** 2 * HQ[..., n:].reshape(B, S, N, n, n)
-    JRu = torch.stack([-Ru[..., 1], Ru[..., 0]], -1)
-    hup = -EIw[..., None] * JRu                                             # (B, S, Q, N, 2)
-    MP = hup.permute(0, 1, 3, 4, 2) @ maps["phi_PQ"]                        # (B, S, N, 2, n+n^2)
+    # d2e/du dpsi_j = -EI_j J Ru_j = EI_j (Ry, -Rx), laid out (B, S, N, 2, Q) for one product.
+    hup = torch.stack([ERy.transpose(-1, -2), -ERx.transpose(-1, -2)], -2)
+    MP = hup @ maps["phi_PQ"]                                               # (B, S, N, 2, n+n^2)
     mu = MP[..., :n]                                                        # (B, S, N, 2, n)
     nu = hh[..., None, None] * MP[..., n:].reshape(B, S, N, 2, n, n)
     # b_kj-rows: alpha b b^T + b (beta at c_kj)^T + (mu at a_k) b^T, then symmetrized.
