@@ -17,7 +17,7 @@ from .mechanics import (
     node_fields,
     section_start_poses,
 )
-from .newton import active_index, compact_scaled
+from .newton import active_index, compact_scaled, take
 
 __all__ = ["Equilibrium"]
 
@@ -43,7 +43,7 @@ def _scaled_stiffness(H: torch.Tensor, qmask: torch.Tensor):
     S = torch.where(active > 0, d.clamp(min=torch.finfo(H.dtype).tiny) ** -0.5,
                     torch.ones_like(d))
     act = active_index(qmask)
-    return compact_scaled(H, S, act)[0], torch.gather(active, 1, act)
+    return compact_scaled(H, S, act)[0], take(active, act)
 
 
 def _stability_threshold(dtype: torch.dtype) -> float:

@@ -35,7 +35,7 @@ from .mechanics import (
 )
 
 __all__ = ["KERNELS", "NewtonResult", "Problem", "active_index", "chunked", "compact",
-           "compact_scaled", "derivatives", "expand", "merit", "newton", "subset"]
+           "compact_scaled", "derivatives", "expand", "merit", "newton", "subset", "take"]
 
 
 class NewtonResult(NamedTuple):
@@ -71,33 +71,47 @@ def subset(prob: Problem, idx: torch.Tensor | slice, merit_only: bool = False) -
     return prob._replace(lay=lay, maps=maps)
 
 
-def active_index(qmask: torch.Tensor) -> torch.Tensor:
+def active_index(qmask: torch.Tensor) -> torch.Tensor | None:
     """``(B, nA)`` indices of each element's active coordinates first (``nA`` = the most active
     coordinates in the batch), padded with distinct inactive ones. Gathering a Hessian with
     :func:`compact` then gives ``nA x nA`` systems (the padding rows are identity rows, as the
     Hessian is identity on inactive coordinates), so the factorizations and every dense pass
-    skip the padded coordinates (about half of them for the Fig. 3 robot)."""
+    skip the padded coordinates (about half of them for the Fig. 3 robot). ``None`` when every
+    coordinate is active (the usual case on the compact coordinates of a batch that shares its
+    sections): :func:`compact`, :func:`take` and :func:`expand` are then the identity, and no
+    gather is made."""
+    if qmask.shape[0] and bool(qmask.all()):
+        return None
     n_active = int(qmask.sum(-1).amax()) if qmask.shape[0] else 0
     order = torch.argsort((qmask == 0).to(torch.int8), dim=-1, stable=True)
     return order[:, :max(n_active, 1)]
 
 
-def compact(H: torch.Tensor, act: torch.Tensor) -> torch.Tensor:
+def compact(H: torch.Tensor, act: torch.Tensor | None) -> torch.Tensor:
     """``H[b][act[b]][:, act[b]]``: ``(B, nq, nq) -> (B, nA, nA)``."""
+    if act is None:
+        return H
     B, nA = act.shape
     rows = torch.gather(H, 1, act[:, :, None].expand(B, nA, H.shape[-1]))
     return torch.gather(rows, 2, act[:, None, :].expand(B, nA, nA))
 
 
-def compact_scaled(H: torch.Tensor, scale: torch.Tensor, act: torch.Tensor):
+def take(v: torch.Tensor, act: torch.Tensor | None) -> torch.Tensor:
+    """``v[b][act[b]]``: ``(B, nq) -> (B, nA)``."""
+    return v if act is None else torch.gather(v, 1, act)
+
+
+def compact_scaled(H: torch.Tensor, scale: torch.Tensor, act: torch.Tensor | None):
     """The Jacobi-scaled Hessian ``S H S`` (``S = diag(scale)``, ``scale (B, nq)``) on each
     element's active coordinates: ``(B, nA, nA)``, and the gathered scale ``(B, nA)``."""
-    sc = torch.gather(scale, 1, act)
+    sc = take(scale, act)
     return sc[:, :, None] * compact(H, act) * sc[:, None, :], sc
 
 
-def expand(v: torch.Tensor, act: torch.Tensor, nq: int) -> torch.Tensor:
+def expand(v: torch.Tensor, act: torch.Tensor | None, nq: int) -> torch.Tensor:
     """Inverse of the compaction for vectors: ``(B, nA) -> (B, nq)``, zero elsewhere."""
+    if act is None:
+        return v
     return torch.zeros(v.shape[0], nq, dtype=v.dtype, device=v.device).scatter_(1, act, v)
 
 
@@ -256,9 +270,10 @@ def _newton(q: torch.Tensor, prob: Problem, L_char: torch.Tensor, *, method: str
             qmask = sub.maps["qmask"]
             act = active_index(qmask)
         Hs, sc = compact_scaled(H, scale, act)
-        gs = sc * torch.gather(g, 1, act)
+        gs = sc * take(g, act)
+        nA = Hs.shape[-1]
         if method == "minimize":
-            step, lam = _damped_step(Hs, gs, lam, eye[:act.shape[1], :act.shape[1]])
+            step, lam = _damped_step(Hs, gs, lam, eye[:nA, :nA])
             step = expand(sc * step, act, nq)
             # Pure Newton phase: an undamped step (positive definite Hessian) that changes no
             # strain by more than 1e-3 rad over the robot's length is accepted without an energy
@@ -272,7 +287,7 @@ def _newton(q: torch.Tensor, prob: Problem, L_char: torch.Tensor, *, method: str
             relaxed = torch.where(relaxed < 1e-2, torch.zeros_like(relaxed), relaxed)
             lam = torch.where(accepted, relaxed, torch.clamp(lam * 4 + 1e-6, max=1e6))
         else:
-            sol, _ = torch.linalg.solve_ex(Hs + 1e-14 * eye[:act.shape[1], :act.shape[1]],
+            sol, _ = torch.linalg.solve_ex(Hs + 1e-14 * eye[:nA, :nA],
                                            -gs[..., None])
             step = expand(sc * sol[..., 0], act, nq)
             # Cap the step at 1 rad of strain x length to stay in Newton's basin.
@@ -294,19 +309,21 @@ def _saddle_test(q, H, g, scale, new, prob: Problem, L_char, act):
     definite and has a negative eigenvalue are moved off the saddle (:func:`_escape`). Returns
     the coordinates and the mask of elements that left. ``act``: :func:`active_index` rows."""
     sel = new.nonzero().flatten()
-    a = act[sel]
+    a = None if act is None else act[sel]
     Hs, sc = compact_scaled(H[sel], scale[sel], a)
     _, info = torch.linalg.cholesky_ex(Hs)
     bad = info != 0
     left = torch.zeros_like(new)
     if not bool(bad.any()):
         return q, left
-    sel, Hs, a, sc = sel[bad], Hs[bad], a[bad], sc[bad]
+    sel, Hs, sc = sel[bad], Hs[bad], sc[bad]
+    a = None if a is None else a[bad]
     ev, vec = torch.linalg.eigh(Hs)
     neg = ev[:, 0] < -1e-8
     if not bool(neg.any()):
         return q, left
-    sel, v = sel[neg], expand(vec[neg][:, :, 0] * sc[neg], a[neg], q.shape[-1])
+    sel, v = sel[neg], expand(vec[neg][:, :, 0] * sc[neg], None if a is None else a[neg],
+                              q.shape[-1])
     sub = subset(prob, sel, merit_only=True)
     v = v * sub.maps["qmask"]
     sign = torch.where((g[sel] * v).sum(-1) > 0, -1.0, 1.0).to(v.dtype)

@@ -27,6 +27,7 @@ from .newton import (
     expand,
     scaled_residual,
     subset,
+    take,
 )
 from .plan import MAGNUS_START, ORDER_START, Plan, plan_for, tube_tensors
 from .scene import Scene, load_scene
@@ -436,7 +437,7 @@ def _one_newton_step(q, prob: Problem):
     _, scale = scaled_residual(g, H, torch.ones_like(g[:, 0]))
     act = active_index(qmask)
     Hs, sc = compact_scaled(H, scale, act)
-    rhs = -(sc * torch.gather(g, 1, act))[..., None]
+    rhs = -(sc * take(g, act))[..., None]
     L, info = torch.linalg.cholesky_ex(Hs)
     sol = torch.cholesky_solve(rhs, L)
     indefinite = (info != 0).nonzero().flatten()
