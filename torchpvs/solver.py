@@ -12,7 +12,6 @@ import warnings
 from dataclasses import dataclass, fields, replace
 
 import torch
-from torch.utils._pytree import tree_map
 
 from .equilibrium import Equilibrium
 from .implicit import differentiable_outputs
@@ -386,14 +385,18 @@ def solve_tensors(scene: Scene, tubes: TubeTensors, D, A, F, M, opts: SolverOpti
 def _released(eq: Equilibrium) -> Equilibrium:
     """``eq`` with every inference-mode tensor (its fields and the context its methods use)
     cloned to an ordinary tensor, so that callers can modify the outputs in place and use them
-    in autograd graphs (inference tensors allow neither outside inference mode)."""
+    in autograd graphs (inference tensors allow neither outside inference mode). The context's
+    containers are walked by hand: a generic pytree map cost 0.3 ms per call, 5% of a single
+    solve."""
     def out(x):
         return x.clone() if isinstance(x, torch.Tensor) and x.is_inference() else x
 
     changes = {f.name: out(getattr(eq, f.name)) for f in fields(eq) if f.name != "_ctx"}
     ctx = dict(eq._ctx)
-    for key in ("lay", "D", "alpha", "F", "M", "implicit_info"):
-        ctx[key] = tree_map(out, ctx[key])
+    ctx["lay"] = type(ctx["lay"])(*map(out, ctx["lay"]))
+    ctx["implicit_info"] = {k: out(v) for k, v in ctx["implicit_info"].items()}
+    for key in ("D", "alpha", "F", "M"):
+        ctx[key] = out(ctx[key])
     return replace(eq, **changes, _ctx=ctx)
 
 
