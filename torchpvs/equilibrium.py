@@ -149,8 +149,8 @@ class Equilibrium:
                        resolve_all=None) -> Equilibrium:
         """Outputs of a converged solve ``res``. Re-solves are handed in by the solver, so that
         this module never imports it: ``resolve(D, rows) -> state`` (a solution dict with ``q``,
-        ``D``, ``alpha``, ``F``, ``M``, ``loaded``) at insertions ``D`` for batch rows ``rows``,
-        near this equilibrium (the one-sided forces at kinks), and
+        ``lay``, ``D``, ``alpha``, ``F``, ``M``, ``loaded``) at insertions ``D`` for batch rows
+        ``rows``, near this equilibrium (the one-sided forces at kinks), and
         ``resolve_all(options, initial) -> Equilibrium`` for the same inputs with other options
         (kept in ``_ctx["resolve"]`` for :mod:`torchpvs.jacobians`)."""
         q, lay, tab, H = res["q"], res["lay"], res["tab"], res["H"]

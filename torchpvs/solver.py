@@ -350,7 +350,7 @@ def solve_tensors(scene: Scene, tubes: TubeTensors, D, A, F, M, opts: SolverOpti
                            moved)
             q1 = q1.clone()
             q1[moved] = _newton_step(q1[moved], prob)[0]
-        return {"q": q1, "D": Dn, "alpha": An, "F": Fn, "M": Mn, "loaded": loaded}
+        return {"q": q1, "D": Dn, "alpha": An, "F": Fn, "M": Mn, "loaded": loaded, "lay": lay}
 
     def resolve_all(options, initial_):
         return solve_tensors(scene, tubes, D, A, F, M, options, initial_, plan)
