@@ -286,7 +286,7 @@ def selection_table(cfgs, keep, quick: bool) -> None:
     counts, and the true error against the requested accuracy and the reported estimate."""
     print("\nAutomatic selection (order=None, n_magnus=None), same configurations:\n")
     print("| accuracy [m] | orders chosen (count) | Magnus steps (count) | max error [m] | "
-          "max error / accuracy | error <= error_estimate | max error / estimate |")
+          "max error / accuracy | error <= error_estimate | max error / estimate (worst case) |")
     print("|---|---|---|---|---|---|---|")
     from collections import Counter
     for acc in ([1e-3, 1e-5, 1e-7] if quick else [1e-3, 1e-4, 1e-5, 1e-6, 1e-7, 1e-8]):
@@ -310,10 +310,12 @@ def selection_table(cfgs, keep, quick: bool) -> None:
             errs.append(e)
             ests.append(float(eq.error_estimate[0]))
         errs, ests = np.array(errs), np.array(ests)
+        ratio = errs / np.maximum(ests, 1e-300)
+        w = int(ratio.argmax())
         fmt = lambda cnt: ", ".join(f"{k}: {v}" for k, v in sorted(cnt.items()))  # noqa: E731
         print(f"| {acc:.0e} | {fmt(orders)} | {fmt(mag)} | {errs.max():.2e} | "
               f"{errs.max() / acc:.2g} | {int((errs <= ests).sum())}/{len(errs)} | "
-              f"{(errs / np.maximum(ests, 1e-300)).max():.2g} |", flush=True)
+              f"{ratio[w]:.2g} ({errs[w]:.1e} m at estimate {ests[w]:.1e} m) |", flush=True)
 
 
 def main(argv=None) -> None:

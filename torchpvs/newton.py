@@ -283,7 +283,7 @@ def _newton(q: torch.Tensor, prob: Problem, L_char: torch.Tensor, *, method: str
             q_new, accepted = _line_search(q, step, g, sub, todo, trust)
             # Damping that has decayed below 1e-2 (of the unit-diagonal scaled Hessian) is
             # dropped: the pure Newton phase converges quadratically and skips the energy check.
-            relaxed = lam * 0.25
+            relaxed = lam * 0.1
             relaxed = torch.where(relaxed < 1e-2, torch.zeros_like(relaxed), relaxed)
             lam = torch.where(accepted, relaxed, torch.clamp(lam * 4 + 1e-6, max=1e6))
         else:
