@@ -12,7 +12,11 @@ import torch
 from hypothesis import HealthCheck, given, settings
 
 import torchpvs as tp
-from torchpvs.forces import envelope_forces_autograd, envelope_forces_closed_form
+from torchpvs.forces import (
+    closed_form_partials,
+    envelope_forces_autograd,
+    envelope_forces_closed_form,
+)
 from torchpvs.testing import scene_strategy
 
 
@@ -73,3 +77,35 @@ def test_loaded_solves_keep_the_reverse_pass():
                   insertion=torch.tensor([0.05, 0.06], dtype=torch.float64))
     ref, _ = envelope_forces_autograd(eq._ctx["tubes"], _state(eq))
     assert torch.equal(eq.actuation_forces, ref)
+
+
+def test_closed_form_second_derivatives_match_double_backward():
+    """One reverse pass through closed_form_partials (what actuator_stiffness uses) gives the
+    same U_Dq, U_DD, U_Dalpha as a double backward through the potential."""
+    from torchpvs.mechanics import potential
+    from torchpvs.sections import build_layout
+
+    scene = tp.load_scene("renda2021_fig3")
+    g = torch.Generator().manual_seed(2)
+    B = 16
+    D = torch.sort(torch.rand(B, 2, generator=g, dtype=torch.float64) * 0.08 + 0.01, -1).values
+    A = (torch.rand(B, 2, generator=g, dtype=torch.float64) - 0.5) * 4
+    eq = tp.solve(scene, insertion=D, rotation=A,
+                  options=tp.SolverOptions(order=2, n_magnus=8, on_failure="ignore"))
+    st = _state(eq)
+    tubes, tab, disc = eq._ctx["tubes"], st["tab"], st["disc"]
+    out = []
+    for way in ("closed form", "double backward"):
+        q, Dg, Ag = (t.detach().clone().requires_grad_(True) for t in (eq.q, st["D"], st["alpha"]))
+        lay = build_layout(tubes, Dg, Ag, st["F"], st["M"], st["loaded"], disc)
+        if way == "closed form":
+            tau = closed_form_partials(
+                q, lay, tubes, tab, disc)[0]
+        else:
+            U = potential(q, lay, tab, None, False)
+            tau = torch.autograd.grad(U.sum(), Dg, create_graph=True)[0]
+        rows = [torch.autograd.grad(tau[:, j].sum(), (q, Dg, Ag), retain_graph=True)
+                for j in range(2)]
+        out.append([torch.stack([r[k] for r in rows], 1) for k in range(3)])
+    for a, b in zip(*out, strict=True):
+        assert (a - b).abs().max() <= 1e-10 * b.abs().max(), (a - b).abs().max()

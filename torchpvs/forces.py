@@ -16,8 +16,9 @@ import torch
 from .mechanics import node_fields, poly, potential, sum_dim, tip_pose
 from .sections import build_layout
 
-__all__ = ["envelope_forces", "envelope_forces_autograd", "envelope_forces_closed_form",
-           "equilibrium_forces", "paper_actuation", "paper_scope_check"]
+__all__ = ["closed_form_partials", "envelope_forces", "envelope_forces_autograd",
+           "envelope_forces_closed_form", "equilibrium_forces", "paper_actuation",
+           "paper_scope_check"]
 
 def envelope_forces(tubes, res):
     """``tau_D = dU*/dD``, ``tau_alpha = dU*/dalpha`` by the envelope theorem: at an equilibrium
@@ -65,82 +66,92 @@ def envelope_forces_closed_form(tubes, res):
     (a kink) the derivative follows torch's rules for ``sort``, ``clamp`` and ``minimum``, as the
     reverse pass does. Returns ``(tau_D, tau_alpha)``, ``(B, N)`` [N, N·m]."""
     with torch.no_grad():
-        q, D, A = res["q"], res["D"], res["alpha"]
-        tab, disc = res["tab"], res["disc"]
-        B, N = D.shape
+        D = res["D"]
         lay = res.get("lay")
         if lay is None or lay.D.shape != D.shape or not torch.equal(lay.D, D):
-            lay = build_layout(tubes, D, A, res["F"], res["M"], res["loaded"], disc)
-        f = node_fields(q, lay, tab["xq"], tab["phi_q"], tab["Q_q"])
-        dt, dev = q.dtype, q.device
-        L, Ls = tubes.length.expand(B, N), tubes.straight.expand(B, N)
-        coef = lay.coef                                                   # (B, N, 3, P)
-        P = coef.shape[-1]
-        w = q[:, :N] * lay.qmask[:, :N]
-        # d(cut)/dD of the unsorted cuts [ell, tau_clip] (each moves with its own tube only).
-        ell_raw, tau = L - D, Ls - D
-        dell = -(ell_raw >= 0).to(dt)
-        tau0, ell = tau.clamp(min=0.0), ell_raw.clamp(min=0.0)
-        dtau0 = -(tau >= 0).to(dt)
-        dtau = torch.where(tau0 < ell, dtau0, torch.where(tau0 > ell, dell, 0.5 * (dtau0 + dell)))
-        _, perm = torch.sort(torch.cat([ell, tau0.minimum(ell)], -1), dim=-1)  # as build_layout
-        dsrc = torch.cat([dell, dtau], -1)
-        tube_of = perm % N                                               # (B, S)
-        onehot = (tube_of[..., None] == torch.arange(N, device=dev)).to(dt)
-        dcut = onehot * torch.gather(dsrc, 1, perm)[..., None]           # (B, S, N): d cut_k/dD_l
-        dstart = torch.cat([torch.zeros_like(dcut[:, :1]), dcut[:, :-1]], 1)
-        dh = dcut - dstart
-        # Guide: t_guide = clamp(min(D, L) - Ls, 0), d/dD as torch's rules give it.
-        Dm = torch.minimum(D, L)
-        dmin = torch.where(D < L, 1.0, torch.where(D > L, 0.0, 0.5)).to(dt)
-        dtg = dmin * (Dm - Ls >= 0).to(dt)
-        tg = (Dm - Ls).clamp(min=0.0)
-        u_g = poly(coef, tg)                                             # (B, N, 3) at t_guide
-        # Node quantities (B, S, Q, ...): weights, densities and partial derivatives.
-        xq, wq = tab["xq"], tab["wq"]
-        W = lay.W                                                        # (B, S, Q)
-        EIp = lay.EI[:, None, None, :] * lay.present[:, :, None, :]      # (B, S, 1, N)
-        GJp = lay.GJ[:, None, None, :] * lay.present[:, :, None, :]
-        ux, uy = f["u"].unbind(-1)
-        Rx, Ry = f["Ru"].unbind(-1)
-        ex, ey = ux[..., None] - Rx, uy[..., None] - Ry                  # (B, S, Q, N)
-        tors = f["dpsi"] - f["ustar"][..., 2]
-        dens = sum_dim(0.5 * EIp * (ex * ex + ey * ey) + 0.5 * GJp * tors * tors, -1)
-        gpsi = W[..., None] * EIp * (Ry * ux[..., None] - Rx * uy[..., None])   # W de/dpsi
-        # de/du*_j . du*_j/dt, with du*/dt the derivative of the precurvature polynomial.
-        if P > 1:
-            dcoef = coef[..., 1:] * torch.arange(1, P, dtype=dt, device=dev)
-            t = f["s"][..., None] - lay.tau[:, None, None, :]            # (B, S, Q, N)
-            dus = poly(dcoef[:, None, None], t) * lay.curved[:, :, None, :, None]
-            cs, sn = torch.cos(f["psi"]), torch.sin(f["psi"])
-            px, py = cs * dus[..., 0] - sn * dus[..., 1], sn * dus[..., 0] + cs * dus[..., 1]
-            gstar = -W[..., None] * (EIp * (ex * px + ey * py) + GJp * tors * dus[..., 2])
-        else:
-            gstar = torch.zeros_like(gpsi)
-        # d s_node / dD_l = dstart_k + (xi + 1)/2 dh_k; the precurvature argument s - Ls_j + D_j
-        # moves by that plus delta_jl.
-        frac = 0.5 * (xq + 1.0)                                          # (Q,)
-        ds = dstart[:, :, None, :] + frac[:, None] * dh[:, :, None, :]   # (B, S, Q, N_l)
-        # Angles: psi_kij = psi0_j + D_j w_j + sum_{k'<k} h_k' c_k'j0 + h_k/2 sum_p Q_ip c_kjp.
-        n = disc.n_basis
-        c = (q[:, N:] * lay.qmask[:, N:]).reshape(B, -1, 2 + N, n)[:, :, 2:, :]   # (B, S, N, n)
-        loc = 0.5 * (c @ tab["Q_q"].transpose(-1, -2)).transpose(-1, -2)  # (B, S, Q, N): /h
-        step = dh[:, :, None, :] * c[:, :, :, :1]                           # (B, S, N_j, N_l)
-        before = torch.cumsum(step, 1) - step           # sum over k' < k of dh_k'l c_k'j0
-        g0 = w + u_g[..., 2] * dtg                                       # (B, N)
-        # guide twist energy and the bending energy held straight in the guide
-        tau_D = 0.5 * lay.GJ * w * w + 0.5 * lay.EI * (u_g[..., 0] ** 2 + u_g[..., 1] ** 2) * dtg
-        # quadrature weights W = h/2 w_i (active sections)
-        tau_D = tau_D + torch.einsum("bsq,q,bsl->bl", dens, 0.5 * wq,
-                                     dh * lay.active[..., None])
-        # angles: own-tube shift, earlier sections' mean torsion, this section's local term
-        Gp = gpsi.sum(2)                                                 # (B, S, N_j)
-        tau_D = tau_D + g0 * Gp.sum(1)
-        tau_D = tau_D + torch.einsum("bsj,bsjl->bl", Gp, before)
-        tau_D = tau_D + torch.einsum("bsqj,bsl->bl", gpsi * loc, dh)
-        # precurvature arguments
-        tau_D = tau_D + torch.einsum("bsqj,bsql->bl", gstar, ds) + gstar.sum((1, 2))
-        tau_A = Gp.sum(1)
+            lay = build_layout(tubes, D, res["alpha"], res["F"], res["M"], res["loaded"],
+                               res["disc"])
+        return closed_form_partials(res["q"], lay, tubes, res["tab"], res["disc"])
+
+
+def closed_form_partials(q, lay, tubes, tab, disc):
+    """The body of :func:`envelope_forces_closed_form` on a layout ``lay`` of the insertions:
+    ``(dU/dD, dU/dalpha)`` at ``q``, elastic energy only. Differentiable: with ``lay`` built
+    from insertions and rotations that require grad (and ``q`` too), one reverse pass gives the
+    second derivatives ``U_Dq``, ``U_DD``, ``U_Dalpha``
+    (:func:`torchpvs.jacobians.actuator_stiffness`)."""
+    D = lay.D
+    B, N = D.shape
+    f = node_fields(q, lay, tab["xq"], tab["phi_q"], tab["Q_q"])
+    dt, dev = q.dtype, q.device
+    L, Ls = tubes.length.expand(B, N), tubes.straight.expand(B, N)
+    coef = lay.coef                                                   # (B, N, 3, P)
+    P = coef.shape[-1]
+    w = q[:, :N] * lay.qmask[:, :N]
+    # d(cut)/dD of the unsorted cuts [ell, tau_clip] (each moves with its own tube only).
+    ell_raw, tau = L - D, Ls - D
+    dell = -(ell_raw >= 0).to(dt)
+    tau0, ell = tau.clamp(min=0.0), ell_raw.clamp(min=0.0)
+    dtau0 = -(tau >= 0).to(dt)
+    dtau = torch.where(tau0 < ell, dtau0, torch.where(tau0 > ell, dell, 0.5 * (dtau0 + dell)))
+    _, perm = torch.sort(torch.cat([ell, tau0.minimum(ell)], -1), dim=-1)  # as build_layout
+    dsrc = torch.cat([dell, dtau], -1)
+    tube_of = perm % N                                               # (B, S)
+    onehot = (tube_of[..., None] == torch.arange(N, device=dev)).to(dt)
+    dcut = onehot * torch.gather(dsrc, 1, perm)[..., None]           # (B, S, N): d cut_k/dD_l
+    dstart = torch.cat([torch.zeros_like(dcut[:, :1]), dcut[:, :-1]], 1)
+    dh = dcut - dstart
+    # Guide: t_guide = clamp(min(D, L) - Ls, 0), d/dD as torch's rules give it.
+    Dm = torch.minimum(D, L)
+    dmin = torch.where(D < L, 1.0, torch.where(D > L, 0.0, 0.5)).to(dt)
+    dtg = dmin * (Dm - Ls >= 0).to(dt)
+    tg = (Dm - Ls).clamp(min=0.0)
+    u_g = poly(coef, tg)                                             # (B, N, 3) at t_guide
+    # Node quantities (B, S, Q, ...): weights, densities and partial derivatives.
+    xq, wq = tab["xq"], tab["wq"]
+    W = lay.W                                                        # (B, S, Q)
+    EIp = lay.EI[:, None, None, :] * lay.present[:, :, None, :]      # (B, S, 1, N)
+    GJp = lay.GJ[:, None, None, :] * lay.present[:, :, None, :]
+    ux, uy = f["u"].unbind(-1)
+    Rx, Ry = f["Ru"].unbind(-1)
+    ex, ey = ux[..., None] - Rx, uy[..., None] - Ry                  # (B, S, Q, N)
+    tors = f["dpsi"] - f["ustar"][..., 2]
+    dens = sum_dim(0.5 * EIp * (ex * ex + ey * ey) + 0.5 * GJp * tors * tors, -1)
+    gpsi = W[..., None] * EIp * (Ry * ux[..., None] - Rx * uy[..., None])   # W de/dpsi
+    # de/du*_j . du*_j/dt, with du*/dt the derivative of the precurvature polynomial.
+    if P > 1:
+        dcoef = coef[..., 1:] * torch.arange(1, P, dtype=dt, device=dev)
+        t = f["s"][..., None] - lay.tau[:, None, None, :]            # (B, S, Q, N)
+        dus = poly(dcoef[:, None, None], t) * lay.curved[:, :, None, :, None]
+        cs, sn = torch.cos(f["psi"]), torch.sin(f["psi"])
+        px, py = cs * dus[..., 0] - sn * dus[..., 1], sn * dus[..., 0] + cs * dus[..., 1]
+        gstar = -W[..., None] * (EIp * (ex * px + ey * py) + GJp * tors * dus[..., 2])
+    else:
+        gstar = torch.zeros_like(gpsi)
+    # d s_node / dD_l = dstart_k + (xi + 1)/2 dh_k; the precurvature argument s - Ls_j + D_j
+    # moves by that plus delta_jl.
+    frac = 0.5 * (xq + 1.0)                                          # (Q,)
+    ds = dstart[:, :, None, :] + frac[:, None] * dh[:, :, None, :]   # (B, S, Q, N_l)
+    # Angles: psi_kij = psi0_j + D_j w_j + sum_{k'<k} h_k' c_k'j0 + h_k/2 sum_p Q_ip c_kjp.
+    n = disc.n_basis
+    c = (q[:, N:] * lay.qmask[:, N:]).reshape(B, -1, 2 + N, n)[:, :, 2:, :]   # (B, S, N, n)
+    loc = 0.5 * (c @ tab["Q_q"].transpose(-1, -2)).transpose(-1, -2)  # (B, S, Q, N): /h
+    step = dh[:, :, None, :] * c[:, :, :, :1]                           # (B, S, N_j, N_l)
+    before = torch.cumsum(step, 1) - step           # sum over k' < k of dh_k'l c_k'j0
+    g0 = w + u_g[..., 2] * dtg                                       # (B, N)
+    # guide twist energy and the bending energy held straight in the guide
+    tau_D = 0.5 * lay.GJ * w * w + 0.5 * lay.EI * (u_g[..., 0] ** 2 + u_g[..., 1] ** 2) * dtg
+    # quadrature weights W = h/2 w_i (active sections)
+    tau_D = tau_D + torch.einsum("bsq,q,bsl->bl", dens, 0.5 * wq,
+                                 dh * lay.active[..., None])
+    # angles: own-tube shift, earlier sections' mean torsion, this section's local term
+    Gp = gpsi.sum(2)                                                 # (B, S, N_j)
+    tau_D = tau_D + g0 * Gp.sum(1)
+    tau_D = tau_D + torch.einsum("bsj,bsjl->bl", Gp, before)
+    tau_D = tau_D + torch.einsum("bsqj,bsl->bl", gpsi * loc, dh)
+    # precurvature arguments
+    tau_D = tau_D + torch.einsum("bsqj,bsql->bl", gstar, ds) + gstar.sum((1, 2))
+    tau_A = Gp.sum(1)
     return tau_D, tau_A
 
 

@@ -24,6 +24,7 @@ from dataclasses import dataclass
 
 import torch
 
+from .forces import closed_form_partials
 from .implicit import differentiable_outputs
 from .mechanics import potential, skew_vee
 from .sections import TubeTensors, build_layout
@@ -164,8 +165,13 @@ def _rotation_rows_from_hessian(eq, rows, D0):
     D, A, q = (t.requires_grad_(True) for t in (D, A, q))
     with torch.enable_grad():
         lay = build_layout(tubes, D, A, F, M, info["loaded"], info["disc"])
-        U = potential(q, lay, info["tab"], None, info["with_load"])
-        tau_D = torch.autograd.grad(U.sum(), D, create_graph=True)[0]
+        if info["with_load"]:
+            U = potential(q, lay, info["tab"], None, True)
+            tau_D = torch.autograd.grad(U.sum(), D, create_graph=True)[0]
+        else:
+            # the closed-form dU/dD (forces.closed_form_partials) differentiated once, instead
+            # of a double backward through the energy
+            tau_D = closed_form_partials(q, lay, tubes, info["tab"], info["disc"])[0]
         UDq, UDD, UDA = torch.autograd.grad((tau_D * pick).sum(), (q, D, A))
     H = eq._ctx["implicit_info"]["H"][rows]                                # (B, nq, nq)
     GJD = torch.diag_embed(tubes.GJ.detach().expand(B, N) * D0)            # (B, N, N)
