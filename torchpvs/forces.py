@@ -20,6 +20,7 @@ __all__ = ["closed_form_partials", "envelope_forces", "envelope_forces_autograd"
            "envelope_forces_closed_form", "equilibrium_forces", "paper_actuation",
            "paper_scope_check"]
 
+
 def envelope_forces(tubes, res):
     """``tau_D = dU*/dD``, ``tau_alpha = dU*/dalpha`` by the envelope theorem: at an equilibrium
     the total derivative equals the partial derivative at fixed coordinates ``q`` (the sections
