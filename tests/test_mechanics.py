@@ -25,6 +25,7 @@ from torchpvs.mechanics import (
     node_constants,
     node_fields,
     pose_constants,
+    sum_dim,
     tip_pose,
 )
 from torchpvs.sections import build_layout, n_coordinates
@@ -164,3 +165,13 @@ def test_magnus_step_exact_for_constant_strain_and_4th_order_for_helix():
     e2 = (integrate(16) - ref).norm()
     assert e2 < e1 / 12  # 4th order: ratio ~16
     assert math.isfinite(float(e2))
+
+
+@pytest.mark.parametrize("size", [1, 2, 3, 4, 5, 7])
+@pytest.mark.parametrize("dim", [0, 1, -1, -2])
+def test_sum_dim_equals_sum(size, dim):
+    """mechanics.sum_dim (explicit adds over short dimensions) is torch.sum."""
+    shape = [3, 4, 5]
+    shape[dim] = size
+    x = torch.randn(*shape, dtype=torch.float64, generator=torch.Generator().manual_seed(size))
+    assert torch.allclose(sum_dim(x, dim), x.sum(dim), rtol=1e-15, atol=1e-15)
