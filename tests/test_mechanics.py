@@ -12,7 +12,7 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import torchpvs as tp
-from torchpvs.lie import exp_se3, magnus4_step
+from torchpvs.lie import SMALL_BATCH_TWISTS, exp_se3, magnus4_step
 from torchpvs.mechanics import (
     build_maps,
     compact_q,
@@ -75,10 +75,10 @@ def test_analytic_derivatives_match_autograd(order, scene_name):
 @given(st.lists(st.floats(-3.0, 3.0), min_size=6, max_size=6),
        st.sampled_from([1.0, 1e-3, 1e-9, 0.0]))
 def test_exp_se3_matches_the_matrix_exponential(xi, scale):
-    """The closed-form SE(3) exponential equals scipy.linalg.expm of the twist matrix (an
-    independent algorithm: Pade with scaling and squaring), down to zero rotation (the series
-    branch). torch.linalg.matrix_exp is not the reference: at xi = (0, 0, 1/32, 0, 0, 0) its
-    sine entry is off by 2.4e-11."""
+    """The closed-form SE(3) exponential, in both of its forms, equals scipy.linalg.expm of the
+    twist matrix (an independent algorithm: Pade with scaling and squaring), down to zero
+    rotation (the series branches). torch.linalg.matrix_exp is not the reference: at
+    xi = (0, 0, 1/32, 0, 0, 0) its sine entry is off by 2.4e-11."""
     dt = torch.float64
     x = torch.tensor(xi, dtype=dt)
     x[:3] *= scale
@@ -88,14 +88,22 @@ def test_exp_se3_matches_the_matrix_exponential(xi, scale):
                              dtype=dt)
     X[:3, 3] = v
     ref = torch.from_numpy(scipy.linalg.expm(X.numpy()))
+    # one twist: the 3x3 matrix form; a batch beyond SMALL_BATCH_TWISTS: the entry-wise form
     assert torch.allclose(exp_se3(x), ref, rtol=1e-12, atol=1e-13)
+    assert torch.allclose(exp_se3(x.expand(SMALL_BATCH_TWISTS + 1, 6))[-1], ref, rtol=1e-12,
+                          atol=1e-13)
 
 
-def test_exp_se3_gradient_is_finite_at_zero_rotation():
-    x = torch.tensor([0.0, 0.0, 0.0, 0.1, -0.2, 1.0], dtype=torch.float64, requires_grad=True)
-    assert torch.autograd.gradcheck(exp_se3, (x,))
-    x2 = torch.tensor([0.3, -0.2, 0.1, 0.1, -0.2, 1.0], dtype=torch.float64, requires_grad=True)
-    assert torch.autograd.gradcheck(exp_se3, (x2,))
+@pytest.mark.parametrize("form", ["matrix", "entry-wise"])
+def test_exp_se3_gradient_is_finite_at_zero_rotation(form):
+    """gradcheck of both forms at zero rotation, in the series range of c (|w|^2 < 0.1) and
+    beyond it."""
+    def f(x):
+        return exp_se3(x) if form == "matrix" else exp_se3(x.expand(SMALL_BATCH_TWISTS + 1, 6))[-1]
+
+    for w in ([0.0, 0.0, 0.0], [0.1, -0.15, 0.05], [0.3, -0.2, 0.1]):
+        x = torch.tensor(w + [0.1, -0.2, 1.0], dtype=torch.float64, requires_grad=True)
+        assert torch.autograd.gradcheck(f, (x,))
 
 
 @settings(max_examples=40, deadline=None)
