@@ -300,7 +300,8 @@ def equilibrium_forces(tubes, res, resolve, delta: float = 1e-7, tol: float = 1e
     derivative differs for insertion and retraction. Each side is taken at an equilibrium
     ``delta`` away on that side (where ``U*`` is smooth), from ``resolve`` (usually no solve, at
     most one Newton step); the error is ``O(delta)``. The equilibrium and every kink side go
-    through ONE envelope-theorem evaluation (one layout, one reverse pass).
+    through ONE envelope-theorem evaluation (in closed form without tip load, else one reverse
+    pass).
 
     Returns ``(forces = retraction side, torques, insertion side, kink mask)``, all ``(B, N)``;
     the insertion side is NaN where the carriage cannot move in (blocked by the next base).
