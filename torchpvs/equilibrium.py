@@ -157,9 +157,15 @@ class Equilibrium:
         B = q.shape[0]
         qmask = lay.qmask
         with torch.no_grad():
-            # Angles at section ends do not depend on the evaluation points: one point will do.
-            f = node_fields(q, lay, tab["xq"][:1], tab["phi_q"][:1], tab["Q_q"][:1])
-            psi_l1 = f["psi0"] + (f["inc"] * lay.before_l1[..., None]).sum(-2)
+            # Tube angles at the outer tube's end, as mechanics.node_fields defines them but
+            # without its node math: psi0 + D w plus the increments h_k c_kj0 (and the prescribed
+            # sections' twist, a constant of the layout kept with the maps) of the sections
+            # before it.
+            N, S = lay.EI.shape[-1], lay.h.shape[-1]
+            qm = q * qmask
+            c0 = qm[:, N:].reshape(B, S, 2 + N, -1)[:, :, 2:, 0]                    # (B, S, N)
+            inc = lay.h[..., None] * c0 + res["maps"]["pose_presc_inc"]
+            psi_l1 = lay.psi0 + lay.D * qm[:, :N] + (inc * lay.before_l1[..., None]).sum(-2)
             rel = _wrap(psi_l1[:, 1:] - psi_l1[:, :1])
             # Stability on the nondimensional stiffness (see min_stiffness_eigenvalue): positive
             # definite beyond a threshold set by the precision alone -- one Cholesky; the

@@ -8,8 +8,6 @@ so neither branch can put NaN into values or gradients.
 
 from __future__ import annotations
 
-import functools
-
 import torch
 
 __all__ = ["hat", "exp_se3", "exp_so3", "magnus4_step", "rot_z", "se3_bracket"]
@@ -75,24 +73,21 @@ def exp_se3(xi: torch.Tensor) -> torch.Tensor:
     return _exp_se3_entrywise(xi)
 
 
-@functools.lru_cache(maxsize=16)
-def _constants(dtype: torch.dtype, device: torch.device):
-    """Read-only constants of the matrix form: ``G (3, 9)`` with ``w @ G = vec(hat(w))``, the
-    Taylor coefficients of ``(sin t / t, sin(t/2) / t, (t - sin t) / t^3)`` in ``t^2`` (rows:
-    powers 0..5), ``I_3`` and the last row of a pose. Cached ordinary tensors."""
-    with torch.inference_mode(False):
-        G = torch.zeros(3, 9, dtype=dtype, device=device)
-        G[2, 1], G[1, 2], G[2, 3], G[0, 5], G[1, 6], G[0, 7] = -1.0, 1.0, 1.0, -1.0, -1.0, 1.0
-        series = torch.tensor(
-            [[1.0, 0.5, 1 / 6], [-1 / 6, -1 / 48, -1 / 120], [1 / 120, 1 / 3840, 1 / 5040],
-             [-1 / 5040, -1 / 645120, -1 / 362880], [1 / 362880, 1 / 185794560, 1 / 39916800],
-             [-1 / 39916800, -1 / 81749606400, -1 / 6227020800]], dtype=dtype, device=device)
-        return (G, series, torch.eye(3, dtype=dtype, device=device),
-                torch.tensor([0.0, 0.0, 0.0, 1.0], dtype=dtype, device=device))
+# Constants of the matrix form: G with ``w @ G = vec(hat(w))``, and the Taylor coefficients of
+# ``(sin t / t, sin(t/2) / t, (t - sin t) / t^3)`` in ``t^2`` (rows: powers 0..5). Made per call
+# (4 small tensors): tensors cached across calls would escape torch.func transforms when first
+# made inside one (the load Hessian runs the tip pose under vmap(jacfwd(grad))).
+_HAT = [[0, 0, 0, 0, 0, -1, 0, 1, 0], [0, 0, 1, 0, 0, 0, -1, 0, 0],
+        [0, -1, 0, 1, 0, 0, 0, 0, 0]]
+_SERIES = [[1.0, 0.5, 1 / 6], [-1 / 6, -1 / 48, -1 / 120], [1 / 120, 1 / 3840, 1 / 5040],
+           [-1 / 5040, -1 / 645120, -1 / 362880], [1 / 362880, 1 / 185794560, 1 / 39916800],
+           [-1 / 39916800, -1 / 81749606400, -1 / 6227020800]]
 
 
 def _exp_se3_matrix(xi: torch.Tensor) -> torch.Tensor:
-    G, series, eye, bottom = _constants(xi.dtype, xi.device)
+    G = torch.tensor(_HAT, dtype=xi.dtype, device=xi.device)
+    series = torch.tensor(_SERIES, dtype=xi.dtype, device=xi.device)
+    eye = torch.eye(3, dtype=xi.dtype, device=xi.device)
     w, v = xi[..., :3], xi[..., 3:]
     W = (w @ G).unflatten(-1, (3, 3))
     WW = W @ W
@@ -112,7 +107,8 @@ def _exp_se3_matrix(xi: torch.Tensor) -> torch.Tensor:
     R = eye + a * W + b * WW
     p = (eye + b * W + c * WW) @ v[..., None]
     top = torch.cat([R, p], -1)
-    return torch.cat([top, bottom.expand(top.shape[:-2] + (1, 4))], -2)
+    bottom = torch.nn.functional.pad(torch.ones_like(top[..., :1, 3:]), (3, 0))
+    return torch.cat([top, bottom], -2)
 
 
 def _exp_se3_entrywise(xi: torch.Tensor) -> torch.Tensor:
