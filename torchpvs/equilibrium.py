@@ -184,7 +184,10 @@ class Equilibrium:
             forces, torques = paper_actuation(tubes, res)
             insert_side = forces.clone()
         elif opts.compute_forces:
-            forces, torques, insert_side, kink = equilibrium_forces(tubes, res, resolve)
+            cache = None if plan is None else (
+                lambda name, compute: plan.cached(res["disc"], lay, name, compute))
+            forces, torques, insert_side, kink = equilibrium_forces(tubes, res, resolve,
+                                                                    cache=cache)
         conv = res["converged"]
         conv_list = conv.tolist()
         reason = tuple("converged" if conv_list[b] else _failure_reason(res, opts, b)

@@ -11,6 +11,8 @@ re-solve they need at kinks, so this module never imports it.
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import torch
 
 from .mechanics import node_fields, poly, potential, sum_dim, tip_pose
@@ -291,22 +293,25 @@ def _coinciding_cuts(L, Ls, D, curved, tol: float) -> torch.Tensor:
     return (close & both & other).flatten(2).any(-1)
 
 
-def equilibrium_forces(tubes, res, resolve, delta: float = 1e-7, tol: float = 1e-9):
-    """Actuation forces and torques ``(B, N)`` at the equilibrium ``res`` (:func:`actuation`),
-    with one-sided insertion forces where ``U*(D_j)`` has a kink: material of tube ``j`` changing
-    kind exactly at the orifice -- its base (``D_j = 0``: the guide torsion appears), its
-    straight-to-curved transition (``D_j = Ls_j``: curvature enters the guide) or its end
-    (``D_j = L_j``) -- or a cut that moves with ``D_j`` meeting another tube's. There the
-    derivative differs for insertion and retraction. Each side is taken at an equilibrium
-    ``delta`` away on that side (where ``U*`` is smooth), from ``resolve`` (usually no solve, at
-    most one Newton step); the error is ``O(delta)``. The equilibrium and every kink side go
-    through ONE envelope-theorem evaluation (in closed form without tip load, else one reverse
-    pass).
+class KinkPlan(NamedTuple):
+    """Where ``U*(D)`` has a kink and the one-sided states to evaluate (:func:`_kink_plan`):
+    ``kink``, ``blocked`` ``(B, N)`` masks; for the kinks, batch rows and tubes ``rows_b``,
+    ``rows_j``, the rows of the one-sided states ``sel`` (every kink's retraction side, then the
+    insertion sides that can move) with their tube ``sj`` and insertions ``Dn``. ``sel`` is
+    None without kinks."""
 
-    Returns ``(forces = retraction side, torques, insertion side, kink mask)``, all ``(B, N)``;
-    the insertion side is NaN where the carriage cannot move in (blocked by the next base).
-    """
-    D = res["D"]
+    kink: torch.Tensor
+    blocked: torch.Tensor
+    rows_b: torch.Tensor | None
+    rows_j: torch.Tensor | None
+    sel: torch.Tensor | None
+    sj: torch.Tensor | None
+    Dn: torch.Tensor | None
+
+
+def _kink_plan(tubes, D: torch.Tensor, delta: float, tol: float) -> KinkPlan:
+    """:class:`KinkPlan` of insertions ``D (B, N)``: it depends on the insertions and the tubes
+    only, so a solve that keeps them reuses it (``equilibrium_forces(cache=...)``)."""
     B, N = D.shape
     L = tubes.length.expand(B, N)
     Ls = tubes.straight.expand(B, N)
@@ -318,10 +323,7 @@ def equilibrium_forces(tubes, res, resolve, delta: float = 1e-7, tol: float = 1e
     blocked = D - delta < prev
     idx = kink.nonzero()
     if idx.numel() == 0:
-        forces, torques = envelope_forces(tubes, res)
-        insertion = forces.clone()
-        insertion[blocked] = float("nan")
-        return forces, torques, insertion, kink
+        return KinkPlan(kink, blocked, None, None, None, None, None)
     rows_b, rows_j = idx[:, 0], idx[:, 1]
     can_insert = ~blocked[rows_b, rows_j]
     # Rows: every kink on the retraction side, then those that can move on the insertion side.
@@ -332,6 +334,41 @@ def equilibrium_forces(tubes, res, resolve, delta: float = 1e-7, tol: float = 1e
     Dn[torch.arange(len(sel)), sj] += delta * sign.to(D.dtype)
     # Moving a base past the next one's would break the ordering: move them together.
     Dn = torch.cummax(Dn, -1).values
+    return KinkPlan(kink, blocked, rows_b, rows_j, sel, sj, Dn)
+
+
+def equilibrium_forces(tubes, res, resolve, delta: float = 1e-7, tol: float = 1e-9,
+                       cache=None):
+    """Actuation forces and torques ``(B, N)`` at the equilibrium ``res`` (:func:`actuation`),
+    with one-sided insertion forces where ``U*(D_j)`` has a kink: material of tube ``j`` changing
+    kind exactly at the orifice -- its base (``D_j = 0``: the guide torsion appears), its
+    straight-to-curved transition (``D_j = Ls_j``: curvature enters the guide) or its end
+    (``D_j = L_j``) -- or a cut that moves with ``D_j`` meeting another tube's. There the
+    derivative differs for insertion and retraction. Each side is taken at an equilibrium
+    ``delta`` away on that side (where ``U*`` is smooth), from ``resolve`` (usually no solve, at
+    most one Newton step); the error is ``O(delta)``. The equilibrium and every kink side go
+    through ONE envelope-theorem evaluation (in closed form without tip load, else one reverse
+    pass).
+
+    ``cache(name, compute)``: where given, the kink analysis (:func:`_kink_plan`) is kept with
+    the solve's layout (``torchpvs.plan.Plan.cached``) and reused while the insertions are.
+
+    Returns ``(forces = retraction side, torques, insertion side, kink mask)``, all ``(B, N)``;
+    the insertion side is NaN where the carriage cannot move in (blocked by the next base).
+    """
+    D = res["D"]
+    B = D.shape[0]
+    def analyse():
+        return _kink_plan(tubes, D, delta, tol)
+
+    kp = analyse() if cache is None else cache(f"kinks_{delta}_{tol}", analyse)
+    kink, blocked = kp.kink.clone(), kp.blocked      # the cached mask is not handed out
+    if kp.sel is None:
+        forces, torques = envelope_forces(tubes, res)
+        insertion = forces.clone()
+        insertion[blocked] = float("nan")
+        return forces, torques, insertion, kink
+    rows_b, rows_j, sel, sj, Dn = kp.rows_b, kp.rows_j, kp.sel, kp.sj, kp.Dn
     side = resolve(Dn, sel)
     both = dict(res, **{k: torch.cat([res[k], side[k]]) for k in
                         ("q", "D", "alpha", "F", "M", "loaded")})
