@@ -11,11 +11,13 @@ import torch
 from .forces import equilibrium_forces, paper_actuation
 from .lie import exp_se3
 from .mechanics import (
+    angle_offsets,
     compact_q,
     elastic_energy_maps,
     magnus_twists,
     node_fields,
     section_start_poses,
+    split_q,
 )
 from .newton import active_index, compact_scaled, take
 
@@ -157,15 +159,11 @@ class Equilibrium:
         B = q.shape[0]
         qmask = lay.qmask
         with torch.no_grad():
-            # Tube angles at the outer tube's end, as mechanics.node_fields defines them but
-            # without its node math: psi0 + D w plus the increments h_k c_kj0 (and the prescribed
-            # sections' twist, a constant of the layout kept with the maps) of the sections
-            # before it.
-            N, S = lay.EI.shape[-1], lay.h.shape[-1]
-            qm = q * qmask
-            c0 = qm[:, N:].reshape(B, S, 2 + N, -1)[:, :, 2:, 0]                    # (B, S, N)
-            inc = lay.h[..., None] * c0 + res["maps"]["pose_presc_inc"]
-            psi_l1 = lay.psi0 + lay.D * qm[:, :N] + (inc * lay.before_l1[..., None]).sum(-2)
+            # Tube angles at the outer tube's end: no node math needed (the prescribed sections'
+            # twist is a constant of the layout, kept with the maps).
+            w, _, c = split_q(q, lay)
+            psi0, inc = angle_offsets(w, c, lay, res["maps"]["pose_presc_inc"])
+            psi_l1 = psi0 + (inc * lay.before_l1[..., None]).sum(-2)
             rel = _wrap(psi_l1[:, 1:] - psi_l1[:, :1])
             # Stability on the nondimensional stiffness (see min_stiffness_eigenvalue): positive
             # definite beyond a threshold set by the precision alone -- one Cholesky; the

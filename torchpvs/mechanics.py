@@ -25,9 +25,9 @@ from .lie import exp_se3, rot_z
 if TYPE_CHECKING:
     from .sections import Layout
 
-__all__ = ["compact_q", "elastic_energy", "expand_hessian", "expand_q", "magnus_twists",
-           "node_constants", "node_fields", "pose_constants", "potential", "section_start_poses",
-           "tip_pose"]
+__all__ = ["angle_offsets", "compact_q", "elastic_energy", "expand_hessian", "expand_q",
+           "magnus_twists", "node_constants", "node_fields", "poly", "pose_constants",
+           "potential", "section_start_poses", "split_q", "sum_dim", "tip_pose"]
 
 
 def sum_dim(x: torch.Tensor, dim: int) -> torch.Tensor:
@@ -97,6 +97,17 @@ def node_constants(lay: Layout, xi: torch.Tensor) -> dict[str, torch.Tensor]:
             "pmask": pmask}
 
 
+def angle_offsets(w: torch.Tensor, c: torch.Tensor, lay: Layout,
+                  presc_inc: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """Tube angles at the orifice ``psi0 (..., N)`` = base rotation, twist of the curved material
+    held in the guide and ``D_j w_j``, and each section's angle increment ``inc (..., S, N)`` =
+    ``h_k`` times its mean torsion (plus a prescribed section's twist ``presc_inc``, from
+    :func:`node_constants`). ``w``, ``c``: the guide twists and torsion coefficients of
+    :func:`split_q`. The angle at the start of section ``k`` is ``psi0`` plus the increments of
+    the sections before it, whatever the evaluation points."""
+    return lay.psi0 + lay.D * w, lay.h[..., None] * c[..., 0] + presc_inc
+
+
 def node_fields(q: torch.Tensor, lay: Layout, xi: torch.Tensor,
                 phi: torch.Tensor, Qb: torch.Tensor,
                 const: dict[str, torch.Tensor] | None = None) -> dict[str, torch.Tensor]:
@@ -117,8 +128,7 @@ def node_fields(q: torch.Tensor, lay: Layout, xi: torch.Tensor,
     # phi/Qb are (G, n) or (..., S, G, n): matmul broadcasts over both.
     u = (a @ phi.transpose(-1, -2)).transpose(-1, -2)                    # (..., S, G, 2)
     dpsi = (c @ phi.transpose(-1, -2)).transpose(-1, -2)                 # (..., S, G, N)
-    inc = h[..., None] * c[..., 0] + const["presc_inc"]
-    psi0 = lay.psi0 + lay.D * w
+    psi0, inc = angle_offsets(w, c, lay, const["presc_inc"])
     psi_start = psi0[..., None, :] + torch.cumsum(inc, -2) - inc
     psi = (psi_start[..., None, :] + 0.5 * h[..., None, None] *
            (c @ Qb.transpose(-1, -2)).transpose(-1, -2) + const["presc_local"])
