@@ -17,6 +17,7 @@ from training.controllers import (
     PlanThenServoController,
     read_state,
     safe_rotation_target,
+    travel_time,
 )
 
 TABLE = 512   # a smaller seeding table than the default keeps these tests fast
@@ -94,6 +95,42 @@ def _run(venv, ctrl, steps):
         rel.append(x[3] - x[2])
         assert not infos[0]["snapped"]
     return np.array(rel), infos[0]["distance"]
+
+
+def test_travel_time_with_the_elastic_load():
+    """Saturated first-order carriage ``b xdot = scale - sign(dx) g`` under a constant load:
+    time ``|dx| b / (scale - sign(dx) g)`` (closed form), the slowest carriage counts, a load
+    that outweighs the actuator in the direction of travel never arrives, no travel takes no
+    time; against an explicit integration of the same ODE with a load varying linearly along
+    the path (the mean of the end loads is then a lower bound: 1 / (s - g) is convex in g)."""
+    b, scale = np.array([200.0, 0.1]), np.array([4.0, 0.15])
+    x0 = np.array([[0.0, 0.0]])
+    x1 = np.array([[0.01, -0.5]])
+    g = np.array([[1.5, 0.05]])
+    t = travel_time(x0, x1, g, g, scale, b)
+    insert = 0.01 * 200.0 / (4.0 - 1.5)            # against the load: 0.8 s
+    turn = 0.5 * 0.1 / (0.15 + 0.05)               # with it: 0.25 s
+    assert t.shape == (1,) and t[0] == pytest.approx(max(insert, turn), rel=1e-12)
+    back = travel_time(x0, -x1, g, g, scale, b)[0]                 # each direction reversed
+    assert back == pytest.approx(max(0.01 * 200.0 / 5.5, 0.5 * 0.1 / 0.1))
+    assert travel_time(x0, x1, 3 * g, 3 * g, scale, b)[0] == np.inf      # 4.5 N > 4 N
+    assert travel_time(x0, x0, 9 * g, 9 * g, scale, b)[0] == 0.0
+    # a load rising linearly from 1 to 2 N along a 10 mm insertion, integrated in time
+    x, time, dt = 0.0, 0.0, 1e-5
+    while x < 0.01:
+        x += dt * (4.0 - (1.0 + 100.0 * x)) / 200.0
+        time += dt
+    est = travel_time(np.zeros((1, 1)), np.full((1, 1), 0.01), np.ones((1, 1)),
+                      np.full((1, 1), 2.0), scale[:1], b[:1])[0]
+    assert est == pytest.approx(0.01 * 200.0 / 2.5) and est <= time < 1.05 * est
+
+
+def test_default_time_constant_is_the_control_period():
+    """``Kp = b / h``: the unloaded error closes in one control period (deadbeat)."""
+    venv = envs.CTRReachVecEnv(1, carriage=envs.CarriageModel(control_period=0.05))
+    assert PlanThenServoController(venv, table_size=TABLE).time_constant == 0.05
+    assert PlanThenServoController(venv, table_size=TABLE, time_constant=0.2).time_constant \
+        == 0.2
 
 
 def test_reaches_an_easy_goal_and_replans_when_the_goal_changes():
