@@ -37,9 +37,11 @@ def _failure_reason(res, opts, b: int) -> str:
 
 
 def _scaled_stiffness(H: torch.Tensor, qmask: torch.Tensor):
-    """``S H S`` with ``S = diag(|H_ii|^-1/2)`` on the active coordinates, gathered to each
-    element's active coordinates (:func:`torchpvs.newton.compact`, ``(B, nA, nA)``; padding rows
-    are identity rows), and the gathered active mask ``(B, nA)`` as float."""
+    """``S H S`` of a Hessian ``H (B, n, n)`` with its active mask ``qmask (B, n)`` (on the
+    padded or the kernel's compact coordinates), ``S = diag(|H_ii|^-1/2)`` on the active
+    coordinates, gathered to each element's active coordinates
+    (:func:`torchpvs.newton.compact`, ``(B, nA, nA)``; padding rows are identity rows), and the
+    gathered active mask ``(B, nA)`` as float."""
     d = H.diagonal(dim1=-2, dim2=-1).abs()
     active = qmask * (d > 0)
     S = torch.where(active > 0, d.clamp(min=torch.finfo(H.dtype).tiny) ** -0.5,
@@ -129,7 +131,7 @@ class Equilibrium:
         if ev is None:
             info = self._ctx["implicit_info"]
             with torch.no_grad():
-                Hs, active = _scaled_stiffness(info["H"], info["qmask"])
+                Hs, active = _scaled_stiffness(info["Hc"], info["qmask_c"])
                 # Inactive rows (identity) are pushed above the spectrum: never the minimum.
                 ev = torch.linalg.eigvalsh(Hs + torch.diag_embed(1.0 - active) * 10.0)[:, 0]
                 # No coordinates (a robot entirely in the guide): no stiffness to speak of.
@@ -155,7 +157,7 @@ class Equilibrium:
         ``rows``, near this equilibrium (the one-sided forces at kinks), and
         ``resolve_all(options, initial) -> Equilibrium`` for the same inputs with other options
         (kept in ``_ctx["resolve"]`` for :mod:`torchpvs.jacobians`)."""
-        q, lay, tab, H = res["q"], res["lay"], res["tab"], res["H"]
+        q, lay, tab = res["q"], res["lay"], res["tab"]
         B = q.shape[0]
         qmask = lay.qmask
         with torch.no_grad():
@@ -168,8 +170,9 @@ class Equilibrium:
             # Stability on the nondimensional stiffness (see min_stiffness_eigenvalue): positive
             # definite beyond a threshold set by the precision alone -- one Cholesky; the
             # eigenvalue itself is computed only when asked for.
-            Hs, active = _scaled_stiffness(H, qmask)
-            tau = _stability_threshold(H.dtype)
+            # (on the kernel's compact coordinates: the padding ones carry no stiffness)
+            Hs, active = _scaled_stiffness(res["Hc"], res["maps"]["qmask"])
+            tau = _stability_threshold(Hs.dtype)
             stable = torch.linalg.cholesky_ex(Hs - tau * torch.diag_embed(active))[1] == 0
             dofs = qmask.sum(-1).long()
             energy = elastic_energy_maps(compact_q(q, res["maps"]["cidx"]), res["maps"])

@@ -21,11 +21,11 @@ import warnings
 
 import torch
 
-from .mechanics import potential, tip_pose
+from .mechanics import expand_hessian, potential, tip_pose
 from .newton import active_index, compact
 from .sections import TubeTensors, build_layout
 
-__all__ = ["ImplicitEquilibrium", "NearSingularStiffnessWarning"]
+__all__ = ["ImplicitEquilibrium", "NearSingularStiffnessWarning", "full_hessian"]
 
 
 class NearSingularStiffnessWarning(RuntimeWarning):
@@ -100,10 +100,20 @@ def _backward(ctx, grad_q):
     return (None, None, *out)
 
 
+def full_hessian(info: dict) -> torch.Tensor:
+    """The equilibrium's Hessian ``(B, nq, nq)`` on the padded coordinates (identity on the
+    inactive ones), expanded from the kernel's compact one (``info["Hc"]`` on the coordinates
+    ``info["cidx"]``) on first use and kept in ``info["H"]``."""
+    H = info.get("H")
+    if H is None:
+        H = info["H"] = expand_hessian(info["Hc"], info["cidx"], info["qmask"].shape[-1])
+    return H
+
+
 def adjoint_factor(q_star, info, D, alpha, F, M, EI, GJ, L, Ls, coef):
     """LU factors of the transposed, Jacobi-scaled tangent ``K^T`` of the adjoint system and the
     scale; warns once if the stiffness is nearly singular."""
-    H = info["H"]
+    H = full_hessian(info)
     qmask = info["qmask"]
     scale = H.diagonal(dim1=-2, dim2=-1).abs().clamp(min=1e-300)
     Hs = H / torch.sqrt(scale[:, :, None] * scale[:, None, :])

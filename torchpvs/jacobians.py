@@ -25,7 +25,7 @@ from dataclasses import dataclass
 import torch
 
 from .forces import closed_form_partials
-from .implicit import differentiable_outputs
+from .implicit import differentiable_outputs, full_hessian
 from .mechanics import potential, skew_vee
 from .sections import TubeTensors, build_layout
 
@@ -74,7 +74,7 @@ def _adjoint_rows(eq, rows: torch.Tensor):
     if factors is None and len(rows) == q.shape[0]:
         factors = info["_adjoint"] = adjoint_factor(q, info, D, A, F, M, *props)
     if factors is None:
-        sub = dict(info, H=info["H"][rows], qmask=info["qmask"][rows],
+        sub = dict(info, H=full_hessian(info)[rows], qmask=info["qmask"][rows],
                    loaded=info["loaded"][rows])
         return adjoint_factor(q[rows], sub, D[rows], A[rows], F[rows], M[rows], *props)
     return tuple(t[rows] for t in factors)
@@ -91,7 +91,7 @@ def _replicated(eq, m: int, rows: torch.Tensor):
     ctx = eq._ctx
     info = ctx["implicit_info"]
     idx = rows.repeat_interleave(m)
-    rep = {k: v for k, v in info.items() if k not in ("H", "_adjoint")}
+    rep = {k: v for k, v in info.items() if k not in ("H", "Hc", "cidx", "qmask_c", "_adjoint")}
     rep.update(qmask=info["qmask"][idx], loaded=info["loaded"][idx])
     inputs = tuple(ctx[k].detach()[idx] for k in ("D", "alpha", "F", "M"))
     return eq.q.detach()[idx], rep, inputs, ctx["tubes"]
@@ -173,7 +173,7 @@ def _rotation_rows_from_hessian(eq, rows, D0):
             # of a double backward through the energy
             tau_D = closed_form_partials(q, lay, tubes, info["tab"], info["disc"])[0]
         UDq, UDD, UDA = torch.autograd.grad((tau_D * pick).sum(), (q, D, A))
-    H = eq._ctx["implicit_info"]["H"][rows]                                # (B, nq, nq)
+    H = full_hessian(eq._ctx["implicit_info"])[rows]                       # (B, nq, nq)
     GJD = torch.diag_embed(tubes.GJ.detach().expand(B, N) * D0)            # (B, N, N)
     UAq = H[:, :N, :].clone()
     UAq[:, :, :N] -= GJD

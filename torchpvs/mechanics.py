@@ -25,9 +25,10 @@ from .lie import exp_se3, rot_z
 if TYPE_CHECKING:
     from .sections import Layout
 
-__all__ = ["angle_offsets", "compact_q", "elastic_energy", "expand_hessian", "expand_q",
-           "magnus_twists", "node_constants", "node_fields", "poly", "pose_constants",
-           "potential", "section_start_poses", "split_q", "sum_dim", "tip_pose"]
+__all__ = ["angle_offsets", "compact_hessian", "compact_q", "elastic_energy", "expand_hessian",
+           "expand_q", "magnus_twists", "node_constants", "node_fields", "poly",
+           "pose_constants", "potential", "section_start_poses", "split_q", "sum_dim",
+           "tip_pose"]
 
 
 def sum_dim(x: torch.Tensor, dim: int) -> torch.Tensor:
@@ -370,6 +371,15 @@ def expand_hessian(Hc: torch.Tensor, cidx: torch.Tensor, nq: int) -> torch.Tenso
     left_out = torch.ones(B, nq, dtype=Hc.dtype, device=Hc.device).scatter_(1, cidx, 0.0)
     H.diagonal(dim1=-2, dim2=-1).add_(left_out)
     return H
+
+
+def compact_hessian(H: torch.Tensor, cidx: torch.Tensor) -> torch.Tensor:
+    """``(B, nq, nq) -> (B, nq_c, nq_c)``: the rows and columns ``cidx (B, nq_c)`` (the inverse
+    of :func:`expand_hessian` on the coordinates kept)."""
+    nq = H.shape[-1]
+    nc = cidx.shape[-1]
+    rows = H.gather(1, cidx[:, :, None].expand(-1, nc, nq))
+    return rows.gather(2, cidx[:, None, :].expand(-1, nc, nc))
 
 
 def pose_constants(maps: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:

@@ -27,7 +27,6 @@ from .mechanics import (
     compact_q,
     elastic_energy_maps,
     elastic_grad_hess,
-    expand_hessian,
     expand_q,
     pose_constants,
     skew_vee,
@@ -42,7 +41,9 @@ class NewtonResult(NamedTuple):
     """Kernel output for a batch of ``B`` elements with ``nq`` (padded) coordinates."""
 
     q: torch.Tensor            # (B, nq) solution (inactive coordinates 0)
-    H: torch.Tensor            # (B, nq, nq) Hessian at q (identity on inactive rows)
+    # (B, nc, nc) Hessian at q on the compact coordinates prob.maps["cidx"] (identity on their
+    # inactive rows; mechanics.expand_hessian gives the padded (B, nq, nq) one)
+    H: torch.Tensor
     g: torch.Tensor            # (B, nq) gradient at q
     converged: torch.Tensor    # (B,) bool
     residual: torch.Tensor     # (B,) scaled residual (SolverOptions.tol)
@@ -195,8 +196,10 @@ def newton(q: torch.Tensor, prob: Problem, L_char: torch.Tensor, *, method: str,
     nq, cidx = q.shape[-1], prob.maps["cidx"]
     qc, H, g, *rest = chunked(_newton, compact_q(q, cidx), prob, L_char, method=method,
                               tol=tol, max_iter=max_iter)
-    return NewtonResult(expand_q(qc, cidx, nq), expand_hessian(H, cidx, nq),
-                        expand_q(g, cidx, nq), *rest)
+    # The Hessian stays compact: expanding it (and releasing the padded copy from inference
+    # mode) was ~10 % of a B = 1024 call, for the few callers that need it (implicit backward,
+    # actuator stiffness: implicit.full_hessian).
+    return NewtonResult(expand_q(qc, cidx, nq), H, expand_q(g, cidx, nq), *rest)
 
 
 def chunked(fn, q: torch.Tensor, prob: Problem, *batched: torch.Tensor, **kwargs) -> tuple:

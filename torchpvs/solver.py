@@ -15,7 +15,15 @@ import torch
 
 from .equilibrium import Equilibrium
 from .implicit import differentiable_outputs
-from .mechanics import compact_q, expand_q, node_constants, pose_constants, tip_pose
+from .mechanics import (
+    compact_hessian,
+    compact_q,
+    expand_hessian,
+    expand_q,
+    node_constants,
+    pose_constants,
+    tip_pose,
+)
 from .newton import (
     KERNELS,
     Problem,
@@ -320,7 +328,9 @@ def solve_tensors(scene: Scene, tubes: TubeTensors, D, A, F, M, opts: SolverOpti
             res = _refine_magnus(scene, tubes, D, A, F, M, res, opts, plan, work)
     res["work_exhausted"] = work.exhausted
     diff = None
-    info = {"H": res["H"], "qmask": res["lay"].qmask, "ridge": opts.backward_ridge,
+    # The Hessian is kept on the kernel's compact coordinates (implicit.full_hessian pads it).
+    info = {"Hc": res["Hc"], "cidx": res["maps"]["cidx"], "qmask_c": res["maps"]["qmask"],
+            "qmask": res["lay"].qmask, "ridge": opts.backward_ridge,
             "singular_tol": opts.singular_tol, "loaded": res["loaded"], "disc": res["disc"],
             "tab": res["tab"], "with_load": res["with_load"], "has_moment": res["has_moment"]}
     res["implicit_info"] = info
@@ -506,10 +516,18 @@ def _load_ramp(scene, tubes, D, A, F, M, res, opts: SolverOptions, plan: Plan, q
     done = alive & (reached == 1.0)
     if sub is not None and bool(done.any()) and sub["q"].shape[-1] == res["q"].shape[-1]:
         keep = rows[done]
-        for key in ("q", "H", "g", "converged", "residual", "iterations", "tip", "R"):
+        for key in ("q", "g", "converged", "residual", "iterations", "tip", "R"):
             merged = res[key].clone()
             merged[keep] = sub[key][done]
             res[key] = merged
+        # The compact Hessians of the two solves may sit on different compact coordinates
+        # (compaction depends on the batch): move the ramp's onto the solution's.
+        nq = res["q"].shape[-1]
+        merged = res["Hc"].clone()
+        merged[keep] = compact_hessian(
+            expand_hessian(sub["Hc"][done], sub["maps"]["cidx"][done], nq),
+            res["maps"]["cidx"][keep])
+        res["Hc"] = merged
     return res
 
 
@@ -601,7 +619,7 @@ def _solve_order(scene, tubes, D, A, F, M, order, n_magnus, opts, q_init, plan: 
     out = KERNELS[opts.kernel](q, prob, L_char, method=opts.method, tol=opts.tol,
                                max_iter=opts.max_iter)
     p, R, _ = tip_pose(out.q, lay, tab, pose_constants(maps))
-    return {"q": out.q, "lay": lay, "tab": tab, "disc": disc, "order": order, "H": out.H,
+    return {"q": out.q, "lay": lay, "tab": tab, "disc": disc, "order": order, "Hc": out.H,
             "g": out.g, "converged": out.converged & torch.isfinite(p).all(-1),
             "residual": out.residual, "iterations": out.iterations, "tip": p, "R": R, "D": D,
             "alpha": A, "F": F, "M": M, "loaded": loaded, "with_load": with_load,
