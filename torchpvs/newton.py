@@ -272,12 +272,11 @@ def _newton(q: torch.Tensor, prob: Problem, L_char: torch.Tensor, *, method: str
             todo = torch.ones_like(lam, dtype=torch.bool)
             qmask = sub.maps["qmask"]
             act = active_index(qmask)
-        Hs, sc = compact_scaled(H, scale, act)
-        gs = sc * take(g, act)
-        nA = Hs.shape[-1]
         if method == "minimize":
-            step, lam = _damped_step(Hs, gs, lam, eye[:nA, :nA])
-            step = expand(sc * step, act, nq)
+            Hc = compact(H, act)
+            step, lam = _damped_step(Hc, take(g, act), take(scale, act), lam,
+                                     eye[:Hc.shape[-1], :Hc.shape[-1]])
+            step = expand(step, act, nq)
             # Pure Newton phase: an undamped step (positive definite Hessian) that changes no
             # strain by more than 1e-3 rad over the robot's length is accepted without an energy
             # evaluation -- the quadratic model's relative error is O(1e-3) there, far inside
@@ -292,6 +291,9 @@ def _newton(q: torch.Tensor, prob: Problem, L_char: torch.Tensor, *, method: str
             relaxed = torch.where(relaxed < 1e-2, torch.zeros_like(relaxed), relaxed)
             lam = torch.where(accepted, relaxed, torch.clamp(lam * 4 + 1e-6, max=1e6))
         else:
+            Hs, sc = compact_scaled(H, scale, act)
+            gs = sc * take(g, act)
+            nA = Hs.shape[-1]
             sol, _ = torch.linalg.solve_ex(Hs + 1e-14 * eye[:nA, :nA],
                                            -gs[..., None])
             step = expand(sc * sol[..., 0], act, nq)
@@ -315,14 +317,15 @@ def _saddle_test(q, H, g, scale, new, prob: Problem, L_char, act):
     the coordinates and the mask of elements that left. ``act``: :func:`active_index` rows."""
     sel = new.nonzero().flatten()
     a = None if act is None else act[sel]
-    Hs, sc = compact_scaled(H[sel], scale[sel], a)
-    _, info = torch.linalg.cholesky_ex(Hs)
+    # Positive definiteness is invariant under the scaling (a congruence): test H itself.
+    _, info = torch.linalg.cholesky_ex(compact(H[sel], a))
     bad = info != 0
     left = torch.zeros_like(new)
     if not bool(bad.any()):
         return q, left
-    sel, Hs, sc = sel[bad], Hs[bad], sc[bad]
+    sel = sel[bad]
     a = None if a is None else a[bad]
+    Hs, sc = compact_scaled(H[sel], scale[sel], a)
     ev, vec = torch.linalg.eigh(Hs)
     neg = ev[:, 0] < -1e-8
     if not bool(neg.any()):
@@ -352,22 +355,31 @@ def _saddle_test(q, H, g, scale, new, prob: Problem, L_char, act):
     return q, left
 
 
-def _damped_step(Hs, gs, lam, eye):
-    """Levenberg–Marquardt-damped Newton step on the Jacobi-scaled system; indefinite Hessians
-    are shifted to be positive definite so the step is a descent direction."""
-    A = Hs.diagonal(dim1=-2, dim2=-1)
-    A.add_(lam[:, None])                 # in place: Hs is a temporary of the caller
-    L, info = torch.linalg.cholesky_ex(Hs)
-    A.sub_(lam[:, None])
+def _damped_step(H, g, sc, lam, eye):
+    """Levenberg–Marquardt-damped Newton step ``(H + lam diag|H_ii|) s = -g`` (``sc =
+    |H_ii|^-1/2``, ``H (B, n, n)``, ``g``, ``sc (B, n)``): the step of the Jacobi-scaled system
+    ``(S H S + lam I) y = -S g``, ``s = S y``, without forming ``S H S`` (two passes and a
+    fresh ``(B, n, n)`` tensor per iteration; a Cholesky factorization is invariant under the
+    diagonal scaling). Indefinite Hessians are shifted to be positive definite, from the scaled
+    spectrum, so the step is a descent direction. ``H``'s diagonal is restored exactly."""
+    A = H.diagonal(dim1=-2, dim2=-1)
+    damped = bool((lam > 0).any())
+    if damped:
+        A0 = A.clone()
+        A.add_(lam[:, None] / (sc * sc))
+    L, info = torch.linalg.cholesky_ex(H)
+    if damped:
+        A.copy_(A0)
     bad = info != 0
     if bool(bad.any()):
-        ev = torch.linalg.eigvalsh(Hs[bad])[:, 0]
+        Hb, sb = H[bad], sc[bad]
+        ev = torch.linalg.eigvalsh(sb[:, :, None] * Hb * sb[:, None, :])[:, 0]
         lam = lam.clone()
         lam[bad] = torch.clamp(-ev, min=0.0) * 1.1 + 1e-3 + lam[bad]
-        Lb, _ = torch.linalg.cholesky_ex(Hs[bad] + lam[bad, None, None] * eye)
+        Lb, _ = torch.linalg.cholesky_ex(Hb + torch.diag_embed(lam[bad, None] / (sb * sb)))
         L = L.clone()
         L[bad] = Lb
-    step = torch.cholesky_solve(-gs[..., None], L)[..., 0]
+    step = torch.cholesky_solve(-g[..., None], L)[..., 0]
     return step, lam
 
 

@@ -29,6 +29,7 @@ from .newton import (
     Problem,
     active_index,
     chunked,
+    compact,
     compact_scaled,
     derivatives,
     expand,
@@ -447,17 +448,21 @@ def _one_newton_step(q, prob: Problem):
     qmask = prob.maps["qmask"]
     g, H = derivatives(q, prob)
     H.diagonal(dim1=-2, dim2=-1).add_(1.0 - qmask)
-    _, scale = scaled_residual(g, H, torch.ones_like(g[:, 0]))
     act = active_index(qmask)
-    Hs, sc = compact_scaled(H, scale, act)
-    rhs = -(sc * take(g, act))[..., None]
-    L, info = torch.linalg.cholesky_ex(Hs)
+    # Cholesky on H itself (invariant under the Jacobi scaling); the LU fallback for an
+    # indefinite H (an unstable equilibrium) pivots, so it gets the scaled system.
+    rhs = -take(g, act)[..., None]
+    L, info = torch.linalg.cholesky_ex(compact(H, act))
     sol = torch.cholesky_solve(rhs, L)
     indefinite = (info != 0).nonzero().flatten()
     if indefinite.numel():
-        sol_lu, info_lu = torch.linalg.solve_ex(Hs[indefinite], rhs[indefinite])
-        sol[indefinite], info[indefinite] = sol_lu, info_lu
-    q1 = q + expand(sc * sol[..., 0], act, q.shape[-1]) * qmask
+        _, scale = scaled_residual(g[indefinite], H[indefinite],
+                                   torch.ones_like(g[indefinite, 0]))
+        a = None if act is None else act[indefinite]
+        Hs, sc = compact_scaled(H[indefinite], scale, a)
+        sol_lu, info_lu = torch.linalg.solve_ex(Hs, sc[..., None] * rhs[indefinite])
+        sol[indefinite], info[indefinite] = sc[..., None] * sol_lu, info_lu
+    q1 = q + expand(sol[..., 0], act, q.shape[-1]) * qmask
     ok = (info == 0) & torch.isfinite(q1).all(-1)
     return torch.where(ok[:, None], q1, q), ok
 
