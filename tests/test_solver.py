@@ -318,3 +318,24 @@ def test_active_index_skips_the_gathers_only_when_everything_is_active():
     assert act[1, :3].tolist() == [0, 2, 3]
     assert torch.equal(compact(H, act)[1, :3, :3], H[1][[0, 2, 3]][:, [0, 2, 3]])
     assert torch.equal(expand(take(v, act), act, 4), v)
+
+
+@pytest.mark.parametrize("method", ["minimize", "root"])
+def test_stable_is_the_smallest_scaled_eigenvalue_above_threshold(method):
+    """``stable`` (from the kernel's saddle-test factorization with ``minimize``, from a separate
+    Cholesky otherwise) agrees elementwise with its definition, the smallest eigenvalue of the
+    Jacobi-scaled stiffness above ``newton.stability_threshold`` (``eigvalsh``), over a batch of
+    section III-B equilibria crossing into the multistable range (unstable ones with root)."""
+    from torchpvs.newton import stability_threshold
+
+    scene = tp.load_scene("renda2021_section3b")
+    a2 = torch.linspace(0.0, math.radians(190.0), 24, dtype=torch.float64)
+    rot = torch.stack([torch.zeros_like(a2), a2], -1)
+    eq = tp.solve(scene, rotation=rot,
+                  options=tp.SolverOptions(method=method, order=3, on_failure="ignore"))
+    ok = eq.converged
+    assert int(ok.sum()) >= 20
+    ev = eq.min_stiffness_eigenvalue
+    assert torch.equal(eq.stable[ok], ev[ok] > stability_threshold(torch.float64))
+    if method == "root":
+        assert not bool(eq.stable[ok].all())     # the sweep does reach unstable equilibria

@@ -19,7 +19,7 @@ from .mechanics import (
     section_start_poses,
     split_q,
 )
-from .newton import active_index, compact_scaled, take
+from .newton import active_index, compact_scaled, stability_threshold, take
 
 __all__ = ["Equilibrium"]
 
@@ -48,10 +48,6 @@ def _scaled_stiffness(H: torch.Tensor, qmask: torch.Tensor):
                     torch.ones_like(d))
     act = active_index(qmask)
     return compact_scaled(H, S, act)[0], take(active, act)
-
-
-def _stability_threshold(dtype: torch.dtype) -> float:
-    return 0.01 * torch.finfo(dtype).eps ** 0.5
 
 
 def _wrap(angle: torch.Tensor) -> torch.Tensor:
@@ -168,12 +164,20 @@ class Equilibrium:
             psi_l1 = psi0 + (inc * lay.before_l1[..., None]).sum(-2)
             rel = _wrap(psi_l1[:, 1:] - psi_l1[:, :1])
             # Stability on the nondimensional stiffness (see min_stiffness_eigenvalue): positive
-            # definite beyond a threshold set by the precision alone -- one Cholesky; the
-            # eigenvalue itself is computed only when asked for.
-            # (on the kernel's compact coordinates: the padding ones carry no stiffness)
-            Hs, active = _scaled_stiffness(res["Hc"], res["maps"]["qmask"])
-            tau = _stability_threshold(Hs.dtype)
-            stable = torch.linalg.cholesky_ex(Hs - tau * torch.diag_embed(active))[1] == 0
+            # definite beyond a threshold set by the precision alone. The kernel's saddle test
+            # factored exactly that at convergence (its verdict); one Cholesky for the elements
+            # without one. The eigenvalue itself is computed only when asked for.
+            verdict = res.get("verdict")
+            if verdict is None:
+                verdict = torch.full((B,), -1, dtype=torch.int8, device=q.device)
+            stable = verdict == 1
+            todo = (verdict < 0).nonzero().flatten()
+            if todo.numel():
+                # (on the kernel's compact coordinates: the padding ones carry no stiffness)
+                Hs, active = _scaled_stiffness(res["Hc"][todo], res["maps"]["qmask"][todo])
+                tau = stability_threshold(Hs.dtype)
+                stable[todo] = torch.linalg.cholesky_ex(
+                    Hs - tau * torch.diag_embed(active))[1] == 0
             dofs = qmask.sum(-1).long()
             energy = elastic_energy_maps(compact_q(q, res["maps"]["cidx"]), res["maps"])
             if res["with_load"]:

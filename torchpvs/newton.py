@@ -34,7 +34,8 @@ from .mechanics import (
 )
 
 __all__ = ["KERNELS", "NewtonResult", "Problem", "active_index", "chunked", "compact",
-           "compact_scaled", "derivatives", "expand", "merit", "newton", "subset", "take"]
+           "compact_scaled", "derivatives", "expand", "merit", "newton", "stability_threshold",
+           "subset", "take"]
 
 
 class NewtonResult(NamedTuple):
@@ -48,6 +49,10 @@ class NewtonResult(NamedTuple):
     converged: torch.Tensor    # (B,) bool
     residual: torch.Tensor     # (B,) scaled residual (SolverOptions.tol)
     iterations: torch.Tensor   # (B,) long
+    # (B,) int8 stability verdict at q where the kernel made one (the saddle test's
+    # factorization): 1 the Jacobi-scaled Hessian exceeds stability_threshold on the active
+    # coordinates, 0 it does not, -1 no verdict (the caller tests)
+    verdict: torch.Tensor | None = None
 
 
 class Problem(NamedTuple):
@@ -164,6 +169,12 @@ def merit(q: torch.Tensor, prob: Problem, q_ref: torch.Tensor) -> torch.Tensor:
     return U
 
 
+def stability_threshold(dtype: torch.dtype) -> float:
+    """The smallest eigenvalue of the Jacobi-scaled stiffness that counts as stable: set by the
+    precision alone (``0.01 sqrt(eps)``, 1.5e-10 in float64)."""
+    return 0.01 * torch.finfo(dtype).eps ** 0.5
+
+
 def tolerance(tol: float, dtype: torch.dtype) -> float:
     # float32 cannot resolve residuals below ~1e-6 of the strain scale.
     return max(tol, 1e-5) if dtype == torch.float32 else tol
@@ -230,6 +241,7 @@ def _newton(q: torch.Tensor, prob: Problem, L_char: torch.Tensor, *, method: str
     residual = torch.full((B,), float("inf"), dtype=dtype, device=device)
     iterations = torch.zeros(B, dtype=torch.long, device=device)
     converged = torch.zeros(B, dtype=torch.bool, device=device)
+    verdict = torch.full((B,), -1, dtype=torch.int8, device=device)
 
     idx = torch.arange(B, device=device)              # working set -> rows of the outputs
     sub, Lc = prob, L_char
@@ -247,7 +259,8 @@ def _newton(q: torch.Tensor, prob: Problem, L_char: torch.Tensor, *, method: str
         if method == "minimize" and escapes < 8:
             new = conv & ~tested
             if bool(new.any()):
-                q, left = _saddle_test(q, H, g, scale, new, sub, Lc, act)
+                q, left, pd = _saddle_test(q, H, g, scale, new, sub, Lc, act)
+                verdict[idx] = torch.where(new & ~left, pd, verdict[idx])
                 tested = tested | (new & ~left)
                 conv = conv & ~left
                 if bool(left.any()):
@@ -308,28 +321,38 @@ def _newton(q: torch.Tensor, prob: Problem, L_char: torch.Tensor, *, method: str
         H_out, g_out = H, g
     else:
         H_out[idx], g_out[idx] = H, g
-    return NewtonResult(q_out, H_out, g_out, converged, residual, iterations)
+    return NewtonResult(q_out, H_out, g_out, converged, residual, iterations, verdict)
 
 
 def _saddle_test(q, H, g, scale, new, prob: Problem, L_char, act):
     """Elements of ``new`` (just converged) whose undamped scaled Hessian is not positive
     definite and has a negative eigenvalue are moved off the saddle (:func:`_escape`). Returns
-    the coordinates and the mask of elements that left. ``act``: :func:`active_index` rows."""
+    the coordinates, the mask of elements that left, and the stability verdict of the elements
+    of ``new`` (int8: 1 where the scaled Hessian exceeds :func:`stability_threshold`, else 0; -1
+    outside ``new``), which the solver's outputs reuse. ``act``: :func:`active_index` rows."""
     sel = new.nonzero().flatten()
     a = None if act is None else act[sel]
-    # Positive definiteness is invariant under the scaling (a congruence): test H itself.
-    _, info = torch.linalg.cholesky_ex(compact(H[sel], a))
+    # One factorization for both questions: S H S - tau I positive definite (stable), and if
+    # not, is there a negative eigenvalue (a saddle)? Without forming S H S:
+    # S (H - tau diag|H_ii|) S is congruent to it (diag|H_ii| = S^-2 on the active rows; the
+    # inactive ones are identity rows and stay positive).
+    Hc = compact(H[sel], a)
+    Hc.diagonal(dim1=-2, dim2=-1).sub_(stability_threshold(H.dtype)
+                                        * Hc.diagonal(dim1=-2, dim2=-1).abs())
+    _, info = torch.linalg.cholesky_ex(Hc)
     bad = info != 0
     left = torch.zeros_like(new)
+    pd = torch.full(new.shape, -1, dtype=torch.int8, device=new.device)
+    pd[sel] = (~bad).to(torch.int8)
     if not bool(bad.any()):
-        return q, left
+        return q, left, pd
     sel = sel[bad]
     a = None if a is None else a[bad]
     Hs, sc = compact_scaled(H[sel], scale[sel], a)
     ev, vec = torch.linalg.eigh(Hs)
     neg = ev[:, 0] < -1e-8
     if not bool(neg.any()):
-        return q, left
+        return q, left, pd
     sel, v = sel[neg], expand(vec[neg][:, :, 0] * sc[neg], None if a is None else a[neg],
                               q.shape[-1])
     sub = subset(prob, sel, merit_only=True)
@@ -352,7 +375,7 @@ def _saddle_test(q, H, g, scale, new, prob: Problem, L_char, act):
     q = q.clone()
     q[sel] = new_q
     left[sel] = ok_all
-    return q, left
+    return q, left, pd
 
 
 def _damped_step(H, g, sc, lam, eye):

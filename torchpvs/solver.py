@@ -521,7 +521,10 @@ def _load_ramp(scene, tubes, D, A, F, M, res, opts: SolverOptions, plan: Plan, q
     done = alive & (reached == 1.0)
     if sub is not None and bool(done.any()) and sub["q"].shape[-1] == res["q"].shape[-1]:
         keep = rows[done]
-        for key in ("q", "g", "converged", "residual", "iterations", "tip", "R"):
+        for key in ("q", "g", "converged", "residual", "iterations", "tip", "R", "verdict"):
+            if res[key] is None or sub[key] is None:    # a kernel without stability verdicts
+                res[key] = None
+                continue
             merged = res[key].clone()
             merged[keep] = sub[key][done]
             res[key] = merged
@@ -626,6 +629,7 @@ def _solve_order(scene, tubes, D, A, F, M, order, n_magnus, opts, q_init, plan: 
     p, R, _ = tip_pose(out.q, lay, tab, pose_constants(maps))
     return {"q": out.q, "lay": lay, "tab": tab, "disc": disc, "order": order, "Hc": out.H,
             "g": out.g, "converged": out.converged & torch.isfinite(p).all(-1),
+            "verdict": out.verdict,
             "residual": out.residual, "iterations": out.iterations, "tip": p, "R": R, "D": D,
             "alpha": A, "F": F, "M": M, "loaded": loaded, "with_load": with_load,
             "has_moment": has_moment, "maps": maps}
