@@ -145,6 +145,40 @@ def test_cached_node_constants_leave_fields_and_tip_unchanged():
         assert torch.allclose(a, b, rtol=0, atol=1e-15)
 
 
+@settings(max_examples=25, deadline=None)
+@given(seed=st.integers(0, 2**31 - 1), three=st.booleans(), loaded=st.booleans())
+def test_tip_pose_on_nonempty_sections_equals_the_full_pose(seed, three, loaded):
+    """tip_pose from the cached constants walks the nonempty sections only
+    (pose_node_constants); an empty section is an identity step, so the result must equal the
+    pose over every section slot exactly (up to rounding), for batches whose elements have
+    different empty slots: random insertions (tubes retracted into the guide, tips and
+    transitions anywhere), random coordinates, two and three tubes, with and without load
+    coordinates (which make single-tube sections active)."""
+    from envs.robots import rvim_three_tube
+
+    scene = rvim_three_tube().scene if three else tp.load_scene("renda2021_fig3")
+    N = scene.n_tubes
+    dt = torch.float64
+    gen = torch.Generator().manual_seed(seed)
+    disc = SolverOptions().discretization(2)
+    tubes = tube_tensors(scene, dt, torch.device("cpu"))
+    B = 6
+    # increasing insertions (the nesting order), some at 0 (all inside the guide)
+    D = torch.sort(torch.rand(B, N, generator=gen, dtype=dt) * tubes.length.min(), -1).values
+    D = D * (torch.rand(B, 1, generator=gen, dtype=dt) > 0.2)
+    A = (torch.rand(B, N, generator=gen, dtype=dt) - 0.5) * 6.0
+    F = torch.zeros(B, 3, dtype=dt)
+    lay = build_layout(tubes, D, A, F, F, torch.full((B,), loaded), disc)
+    tab = disc.tables(dt, torch.device("cpu"))
+    nq = n_coordinates(N, disc.n_basis)
+    q = 3.0 * torch.randn(B, nq, generator=gen, dtype=dt)
+    maps = build_maps(lay, tab, nq)
+    assert maps["pose_sec"].shape[-1] <= lay.h.shape[-1]
+    for a, b in zip(tip_pose(q, lay, tab), tip_pose(q, lay, tab, pose_constants(maps)),
+                    strict=True):
+        assert torch.allclose(a, b, rtol=0, atol=1e-14), (a - b).abs().max()
+
+
 def test_magnus_step_exact_for_constant_strain_and_4th_order_for_helix():
     """Constant strain: one Magnus step equals the exponential. Variable strain (a rod whose
     curvature grows linearly, u_y = c s): error falls ~h^4 per unit length (global order 4)."""

@@ -160,7 +160,7 @@ class Equilibrium:
             # Tube angles at the outer tube's end: no node math needed (the prescribed sections'
             # twist is a constant of the layout, kept with the maps).
             w, _, c = split_q(q, lay)
-            psi0, inc = angle_offsets(w, c, lay, res["maps"]["pose_presc_inc"])
+            psi0, inc = angle_offsets(w, c, lay, res["maps"]["presc_inc"])
             psi_l1 = psi0 + (inc * lay.before_l1[..., None]).sum(-2)
             rel = _wrap(psi_l1[:, 1:] - psi_l1[:, :1])
             # Stability on the nondimensional stiffness (see min_stiffness_eigenvalue): positive

@@ -27,8 +27,8 @@ if TYPE_CHECKING:
 
 __all__ = ["angle_offsets", "compact_hessian", "compact_q", "elastic_energy", "expand_hessian",
            "expand_q", "magnus_twists", "node_constants", "node_fields", "poly",
-           "pose_constants", "potential", "section_start_poses", "split_q", "sum_dim",
-           "tip_pose"]
+           "pose_constants", "pose_node_constants", "potential", "section_start_poses",
+           "split_q", "sum_dim", "tip_pose"]
 
 
 def sum_dim(x: torch.Tensor, dim: int) -> torch.Tensor:
@@ -96,6 +96,40 @@ def node_constants(lay: Layout, xi: torch.Tensor) -> dict[str, torch.Tensor]:
     presc_inc = (_poly_int(zc, t0 + h[..., None]) - Z0) * pmask
     return {"s": s, "ustar": ustar, "presc_local": presc_local, "presc_inc": presc_inc,
             "pmask": pmask}
+
+
+def pose_node_constants(lay: Layout, xi: torch.Tensor) -> dict[str, torch.Tensor]:
+    """What :func:`tip_pose` needs of the layout at the Magnus points ``xi (G,)``, on the
+    *nonempty* sections only: ``sec (B, S_p)`` their slots, in backbone order, padded with
+    empty ones to the batch's most (``S_p``); per section ``h (B, S_p)`` [m], ``presc_inc
+    (B, S_p, N)`` [rad]; per point ``ustar_held (B, S_p, G, N, 2)`` [1/m] the in-plane
+    precurvature of the tubes of prescribed (single-tube) sections, zero elsewhere, and
+    ``presc_local (B, S_p, G, N)`` [rad] (:func:`node_constants`).
+
+    An empty section is an identity step of the pose and adds no angle, so leaving it out
+    changes nothing (the product over the other sections keeps its order); it saves the node
+    math, exponentials and products of the empty slots (half of the six of the three-tube
+    preset, a quarter of the Fig. 3 robot's four). Built once per layout (a host sync for
+    ``S_p``): :func:`build_maps` keeps it for the solver."""
+    return _pose_sections(lay, node_constants(lay, xi))
+
+
+def _pose_sections(lay: Layout, c: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+    """:func:`pose_node_constants` from the layout's :func:`node_constants` ``c``."""
+    B, S = lay.h.shape
+    nonempty = lay.h > 0
+    Sp = max(1, int(nonempty.sum(-1).amax()))
+    sec = torch.argsort((~nonempty).to(torch.int8), dim=-1, stable=True)[:, :Sp]
+
+    def take_sections(t):                      # (B, S, ...) -> (B, S_p, ...)
+        return torch.gather(t, 1, sec.reshape((B, Sp) + (1,) * (t.ndim - 2)).expand(
+            (B, Sp) + t.shape[2:]))
+
+    held = (lay.presc[..., None] * lay.present)[:, :, None, :, None]     # (B, S, 1, N, 1)
+    return {"sec": sec, "h": take_sections(lay.h),
+            "presc_inc": take_sections(c["presc_inc"]),
+            "ustar_held": take_sections(c["ustar"][..., :2] * held),
+            "presc_local": take_sections(c["presc_local"])}
 
 
 def angle_offsets(w: torch.Tensor, c: torch.Tensor, lay: Layout,
@@ -199,6 +233,39 @@ def section_start_poses(q: torch.Tensor, lay: Layout, tab: dict[str, torch.Tenso
     return torch.stack(poses, -3), f
 
 
+def _tip_frame(q: torch.Tensor, lay: Layout, tab: dict[str, torch.Tensor],
+               const: dict[str, torch.Tensor]):
+    """The backbone frame at the tip ``(..., 4, 4)``, the tube angles at the orifice
+    ``(..., N)`` and the angle increments of the nonempty sections ``(..., S_p, N)``, from the
+    :func:`pose_node_constants` ``const``: :func:`section_start_poses` restricted to what the
+    tip needs. Bending: the coefficients of active sections, plus ``Rz(psi) u*`` of the tube
+    of a prescribed one (``ustar_held``; only there are the tube angles at the nodes needed)."""
+    w, a, c = split_q(q, lay)
+    sec, h = const["sec"], const["h"]                   # (..., S_p): also per element (vmap)
+    Sp = sec.shape[-1]
+    a = torch.gather(a, -3, sec[..., None, None].expand(sec.shape + a.shape[-2:]))
+    c = torch.gather(c, -3, sec[..., None, None].expand(sec.shape + c.shape[-2:]))
+    phi, Qb = tab["phi_m"], tab["Q_m"]
+    # angle_offsets on the kept sections (its increments use their lengths h)
+    psi0 = lay.psi0 + lay.D * w
+    inc = h[..., None] * c[..., 0] + const["presc_inc"]
+    psi_start = psi0[..., None, :] + torch.cumsum(inc, -2) - inc
+    psi = (psi_start[..., None, :] + 0.5 * h[..., None, None] *
+           (c @ Qb.transpose(-1, -2)).transpose(-1, -2) + const["presc_local"])
+    cs, sn = torch.cos(psi), torch.sin(psi)
+    us = const["ustar_held"]
+    ux, uy = us[..., 0], us[..., 1]
+    u = (a @ phi.transpose(-1, -2)).transpose(-1, -2)                    # (B, S_p, G, 2)
+    u = u + torch.stack([sum_dim(cs * ux - sn * uy, -1), sum_dim(sn * ux + cs * uy, -1)], -1)
+    m = u.shape[-2] // 2
+    sec_g = _ordered_product(exp_se3(magnus_twists(u.reshape(u.shape[:-2] + (m, 2, 2)),
+                                                   h / m)))                # (..., S_p, 4, 4)
+    g = sec_g[..., 0, :, :]
+    for k in range(1, Sp):
+        g = g @ sec_g[..., k, :, :]
+    return g, psi0, inc
+
+
 def _ordered_product(mats: torch.Tensor) -> torch.Tensor:
     """``mats[..., 0, :, :] @ mats[..., 1, :, :] @ ... `` over dim -3, by pairwise reduction."""
     while mats.shape[-3] > 1:
@@ -217,10 +284,15 @@ def tip_pose(q: torch.Tensor, lay: Layout, tab: dict[str, torch.Tensor],
              const: dict[str, torch.Tensor] | None = None):
     """Tip position ``(..., 3)`` and the material frame ``(..., 3, 3)`` of the tube forming the
     tip (base frame), plus the tube angles at the tip ``(..., N)``. ``const``: the
-    :func:`node_constants` of the Magnus nodes (:func:`pose_constants`), or ``None``."""
-    poses, f = section_start_poses(q, lay, tab, const)
-    g = poses[..., -1, :, :]
-    psi_tip = f["psi0"] + sum_dim(f["inc"], -2)                             # (..., N)
+    :func:`pose_node_constants` of the Magnus nodes (:func:`pose_constants`; the nonempty
+    sections only), or ``None`` (every section; differentiable with respect to the layout)."""
+    if const is None:
+        poses, f = section_start_poses(q, lay, tab)
+        g = poses[..., -1, :, :]
+        psi0, inc = f["psi0"], f["inc"]
+    else:
+        g, psi0, inc = _tip_frame(q, lay, tab, const)
+    psi_tip = psi0 + sum_dim(inc, -2)                                       # (..., N)
     angle = sum_dim(psi_tip * lay.tip_tube, -1)
     R = g[..., :3, :3] @ rot_z(angle)
     return g[..., :3, 3], R, psi_tip
@@ -298,7 +370,9 @@ def build_maps(lay: Layout, tab: dict[str, torch.Tensor],
     others have zero weight), so nothing is lost, and the dense per-element algebra shrinks
     from ``nq`` to ``nq_c = N + S_c (2 + N) n`` coordinates (Fig. 3 robot at order 2: 50 ->
     26). ``maps["cidx"] (B, nq_c)`` gives each compact coordinate's index in ``q``
-    (:func:`compact_q`, :func:`expand_q`). The pose constants (``pose_*``) keep every section."""
+    (:func:`compact_q`, :func:`expand_q`). The pose constants (``pose_*``,
+    :func:`pose_node_constants`) keep every nonempty section, ``presc_inc (B, S, N)`` every
+    section's prescribed twist (for the tube angles of the outputs)."""
     h_full = lay.h.detach()
     B, S_full = h_full.shape
     N = lay.EI.shape[-1]
@@ -321,7 +395,8 @@ def build_maps(lay: Layout, tab: dict[str, torch.Tensor],
     qmask = torch.gather(lay.qmask.detach(), 1, cidx)
     with torch.no_grad():
         ustar = sections(node_constants(lay, tab["xq"])["ustar"])
-        pose = {f"pose_{k}": v.detach() for k, v in node_constants(lay, tab["xm"]).items()}
+        full = node_constants(lay, tab["xm"])
+        pose = {f"pose_{k}": v.detach() for k, v in _pose_sections(lay, full).items()}
         b_full = sections(angle_bases(lay, nq))                              # (B, S, N, nq)
         bvec = torch.gather(b_full, 3, cidx[:, None, None, :].expand(B, S, N, nc))
     W = sections(lay.W.detach())                                           # (B, S, Q)
@@ -346,6 +421,7 @@ def build_maps(lay: Layout, tab: dict[str, torch.Tensor],
             "GJw": W[..., None] * GJp, "H_const": H_const,
             "guide": guide, "guide_const": lay.guide_const.detach(), "h": h,
             "qmask": qmask, "psi0": lay.psi0.detach(), "bvec": bvec, "cidx": cidx,
+            "presc_inc": full["presc_inc"].detach(),
             "phi": phi, "Qb": tab["Q_q"], **_node_tables(phi, tab["Q_q"]), **pose}
 
 
@@ -383,7 +459,7 @@ def compact_hessian(H: torch.Tensor, cidx: torch.Tensor) -> torch.Tensor:
 
 
 def pose_constants(maps: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-    """The :func:`node_constants` of the Magnus nodes stored by :func:`build_maps` (for
+    """The :func:`pose_node_constants` of the Magnus nodes stored by :func:`build_maps` (for
     :func:`tip_pose` in solves that need no gradient with respect to the layout)."""
     return {k[5:]: v for k, v in maps.items() if k.startswith("pose_")}
 

@@ -20,8 +20,8 @@ from .mechanics import (
     compact_q,
     expand_hessian,
     expand_q,
-    node_constants,
     pose_constants,
+    pose_node_constants,
     tip_pose,
 )
 from .newton import (
@@ -552,7 +552,7 @@ def _refine_magnus(scene, tubes, D, A, F, M, res, opts: SolverOptions, plan: Pla
         tab = fine.tables(D.dtype, D.device)
         lay = res["lay"]
         const = plan.cached(res["disc"], lay, f"pose_constants_{2 * m}",
-                            lambda: node_constants(lay, tab["xm"]))  # noqa: B023 - used now
+                            lambda: pose_node_constants(lay, tab["xm"]))  # noqa: B023 - used now
         tip_fine, _, _ = tip_pose(res["q"], lay, tab, const)
         est = (tip_fine - res["tip"]).norm(dim=-1)
         if bool((est <= opts.accuracy / 2).all()) or 2 * m > _MAGNUS_MAX \
