@@ -292,6 +292,7 @@ def solve_tensors(scene: Scene, tubes: TubeTensors, D, A, F, M, opts: SolverOpti
     # to ordinary tensors (_released).
     with torch.inference_mode(not needs_grad):
         q_init, init_order, init_magnus = _initial_q(initial, B, scene.n_tubes)
+        q_init = _rotation_predictor(initial, q_init, scene, tubes, D, A, F, M, opts)
         # Automatic choices start at the warm start's discretization (so a continuation keeps
         # the model whose branch it follows), else at order 2 and 8 Magnus steps.
         if opts.order is not None:
@@ -588,6 +589,49 @@ def _initial_q(initial, B: int, N: int):
     order = n_from - 1 if n_coordinates(N, n_from) == q.shape[-1] and n_from >= 1 else None
     magnus = initial._ctx["disc"].n_magnus if isinstance(initial, Equilibrium) else None
     return q.detach().expand(B, -1), order, magnus
+
+
+# Largest predicted change of a strain coordinate x the robot's length [rad] that the rotation
+# predictor may make; beyond it (near a fold, or after a large step) the warm start is used as
+# it is, and Newton's damping and line search take over.
+PREDICTOR_TRUST = 0.1
+
+
+def _rotation_predictor(initial, q_init, scene, tubes, D, A, F, M, opts):
+    """The warm start moved along the equilibrium branch to the new base rotations: a first-
+    order (Euler) predictor ``dq = -H^-1 U_q,alpha dalpha`` from the warm-start equilibrium's
+    own Hessian, for a call that changes only rotations (same robot, insertions and batch, no
+    tip load). The potential depends on ``alpha_j`` and the guide twist ``w_j`` only through
+    ``alpha_j + D_j w_j`` plus the guide's ``1/2 GJ_j D_j w_j^2``, so ``U_q,alpha_j =
+    (H[:, w_j] - GJ_j D_j e_wj) / D_j`` and the predictor is ``dw = -dalpha / D`` plus
+    ``H^-1 (GJ dalpha)`` on the guide twists: one factorization, no derivative evaluation.
+    Its error is ``O(dalpha^2)``, so Newton starts closer (a warm 1 deg step: one iteration
+    fewer). Elements whose base sits at the orifice (no guide twist), whose Hessian is not
+    positive definite, or whose predicted step exceeds :data:`PREDICTOR_TRUST` keep the warm
+    start as it is. It changes where Newton starts, not what it converges to."""
+    if not isinstance(initial, Equilibrium) or q_init is None:
+        return q_init
+    ctx = initial._ctx
+    info = ctx.get("implicit_info", {})
+    Hc = info.get("Hc")
+    B, N = D.shape
+    if (Hc is None or Hc.shape[0] != B or info["with_load"] or opts.load_coordinates
+            or ctx["scene"].tubes != scene.tubes or ctx["D"].shape != D.shape
+            or bool((F != 0).any() | (M != 0).any()) or not torch.equal(ctx["D"], D)):
+        return q_init
+    qmask_c, cidx = info["qmask_c"], info["cidx"]
+    dA = A - ctx["alpha"].to(A.dtype)
+    dA = dA - (2 * math.pi) * torch.round(dA / (2 * math.pi))
+    rhs = torch.zeros_like(qmask_c)
+    rhs[:, :N] = tubes.GJ.expand(B, N) * dA
+    L, fail = torch.linalg.cholesky_ex(Hc)
+    x = torch.cholesky_solve(rhs[..., None], L)[..., 0]
+    x[:, :N] -= dA / torch.where(D > 0, D, torch.ones_like(D))
+    dq = expand_q(x * qmask_c, cidx, q_init.shape[-1])
+    length = float(tubes.length.max())
+    ok = ((fail == 0) & (qmask_c[:, :N] > 0).all(-1) & torch.isfinite(dq).all(-1)
+          & (dq.abs().amax(-1) * length < PREDICTOR_TRUST))
+    return torch.where(ok[:, None], q_init + dq, q_init)
 
 
 def _resize_q(q: torch.Tensor, N: int, n_from: int, n_to: int) -> torch.Tensor:
