@@ -177,6 +177,12 @@ def test_tip_pose_on_nonempty_sections_equals_the_full_pose(seed, three, loaded)
     for a, b in zip(tip_pose(q, lay, tab), tip_pose(q, lay, tab, pose_constants(maps)),
                     strict=True):
         assert torch.allclose(a, b, rtol=0, atol=1e-14), (a - b).abs().max()
+    # several coordinate sets per element in one call (a leading dim beyond the layout's)
+    q2 = q + 0.1 * torch.randn(B, nq, generator=gen, dtype=dt)
+    stacked = tip_pose(torch.stack([q, q2]), lay, tab, pose_constants(maps))
+    for k, qk in enumerate((q, q2)):
+        for a, b in zip(stacked, tip_pose(qk, lay, tab, pose_constants(maps)), strict=True):
+            assert torch.allclose(a[k], b, rtol=0, atol=1e-14)
 
 
 def test_magnus_step_exact_for_constant_strain_and_4th_order_for_helix():

@@ -243,8 +243,9 @@ def _tip_frame(q: torch.Tensor, lay: Layout, tab: dict[str, torch.Tensor],
     w, a, c = split_q(q, lay)
     sec, h = const["sec"], const["h"]                   # (..., S_p): also per element (vmap)
     Sp = sec.shape[-1]
-    a = torch.gather(a, -3, sec[..., None, None].expand(sec.shape + a.shape[-2:]))
-    c = torch.gather(c, -3, sec[..., None, None].expand(sec.shape + c.shape[-2:]))
+    # (q may carry leading dims beyond the layout's: several coordinate sets per element)
+    a = torch.gather(a, -3, sec[..., None, None].expand(a.shape[:-3] + (Sp,) + a.shape[-2:]))
+    c = torch.gather(c, -3, sec[..., None, None].expand(c.shape[:-3] + (Sp,) + c.shape[-2:]))
     phi, Qb = tab["phi_m"], tab["Q_m"]
     # angle_offsets on the kept sections (its increments use their lengths h)
     psi0 = lay.psi0 + lay.D * w

@@ -306,7 +306,11 @@ def solve_tensors(scene: Scene, tubes: TubeTensors, D, A, F, M, opts: SolverOpti
         work = _Work(opts.max_total_iter)
         prev = None
         while True:
-            res = _solve_order(scene, tubes, D, A, F, M, order, n_magnus, opts, q_init, plan)
+            # With the automatic order and no load (no load ramp), the solution's tip pose is
+            # made by the order check, together with the next order's (one pose call).
+            joint = opts.order is None and not bool(_loaded(F, M, opts).any())
+            res = _solve_order(scene, tubes, D, A, F, M, order, n_magnus, opts, q_init, plan,
+                               pose=not joint)
             work.spend(res)
             if prev is None:
                 res = _load_ramp(scene, tubes, D, A, F, M, res, opts, plan, q_init, work)
@@ -429,7 +433,15 @@ def _order_estimate(scene, tubes, D, A, F, M, res, opts: SolverOptions, plan: Pl
     prob = Problem(lay, tab, maps, res["with_load"], res["has_moment"])
     q = _resize_q(res["q"], N, n_from, disc.n_basis) * lay.qmask
     q1, ok = _newton_step(q, prob)
-    tip1, _, _ = tip_pose(q1, lay, tab, pose_constants(maps))
+    if "tip" in res:
+        tip1, _, _ = tip_pose(q1, lay, tab, pose_constants(maps))
+    else:
+        # The solution's own pose too (_solve_order(pose=False)), in the same call: padded to
+        # the next order, its strain field is the same (the Legendre basis is hierarchical).
+        both, R, _ = tip_pose(torch.stack([q, q1]), lay, tab, pose_constants(maps))
+        tip1 = both[1]
+        res["tip"], res["R"] = both[0], R[0]
+        res["converged"] = res["converged"] & torch.isfinite(both[0]).all(-1)
     est = (tip1 - res["tip"]).norm(dim=-1)
     est = torch.where(ok & torch.isfinite(est), est, torch.full_like(est, float("inf")))
     return est, q1
@@ -646,7 +658,10 @@ def _resize_q(q: torch.Tensor, N: int, n_from: int, n_to: int) -> torch.Tensor:
     return torch.cat([w, X.reshape(B, -1)], -1)
 
 
-def _solve_order(scene, tubes, D, A, F, M, order, n_magnus, opts, q_init, plan: Plan):
+def _solve_order(scene, tubes, D, A, F, M, order, n_magnus, opts, q_init, plan: Plan,
+                 pose: bool = True):
+    """Newton at one discretization. ``pose=False``: without the tip pose (``tip``, ``R``) and
+    its finiteness in ``converged``; :func:`_order_estimate` then adds them."""
     disc = replace(opts.discretization(order), n_magnus=n_magnus)
     N = scene.n_tubes
     dtype, device = D.dtype, D.device
@@ -670,13 +685,15 @@ def _solve_order(scene, tubes, D, A, F, M, order, n_magnus, opts, q_init, plan: 
     prob = Problem(lay, tab, maps, with_load, has_moment)
     out = KERNELS[opts.kernel](q, prob, L_char, method=opts.method, tol=opts.tol,
                                max_iter=opts.max_iter)
-    p, R, _ = tip_pose(out.q, lay, tab, pose_constants(maps))
-    return {"q": out.q, "lay": lay, "tab": tab, "disc": disc, "order": order, "Hc": out.H,
-            "g": out.g, "converged": out.converged & torch.isfinite(p).all(-1),
-            "verdict": out.verdict,
-            "residual": out.residual, "iterations": out.iterations, "tip": p, "R": R, "D": D,
-            "alpha": A, "F": F, "M": M, "loaded": loaded, "with_load": with_load,
-            "has_moment": has_moment, "maps": maps}
+    res = {"q": out.q, "lay": lay, "tab": tab, "disc": disc, "order": order, "Hc": out.H,
+           "g": out.g, "converged": out.converged, "verdict": out.verdict,
+           "residual": out.residual, "iterations": out.iterations, "D": D, "alpha": A, "F": F,
+           "M": M, "loaded": loaded, "with_load": with_load, "has_moment": has_moment,
+           "maps": maps}
+    if pose:
+        p, R, _ = tip_pose(out.q, lay, tab, pose_constants(maps))
+        res.update(tip=p, R=R, converged=out.converged & torch.isfinite(p).all(-1))
+    return res
 
 
 def _default_guess(lay, tab, disc, N):
