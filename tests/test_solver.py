@@ -11,6 +11,7 @@ import torch
 import torchpvs as tp
 from torchpvs import testing
 from torchpvs.scene import Actuation, Scene, Tube
+from torchpvs.sections import n_coordinates
 
 E, G = 58.0e9, 21.5e9
 
@@ -391,3 +392,41 @@ def test_warm_rotation_steps_converge_to_the_same_equilibria_in_fewer_iterations
         without += int(b.iterations[0])
         prev = a
     assert with_pred < without, (with_pred, without)
+
+
+def test_default_guess_is_the_torsionless_bending_on_every_active_section():
+    """The cold-start guess (solver._default_guess, from the kernel's compact maps) against
+    the same quantity from the full node fields at q = 0: on every active section, the bending
+    coefficients are the Legendre projection of the stiffness-weighted precurvature turned by
+    the base angles (eq. 31 without torsion); every other coordinate is zero."""
+    from envs.robots import rvim_three_tube
+    from torchpvs.mechanics import node_fields
+    from torchpvs.plan import plan_for
+    from torchpvs.solver import _default_guess
+
+    for scene in (tp.load_scene("renda2021_fig3"), rvim_three_tube().scene):
+        N = scene.n_tubes
+        gen = torch.Generator().manual_seed(1)
+        B = 12
+        rot = (torch.rand(B, N, generator=gen, dtype=torch.float64) - 0.5) * 6
+        D = torch.tensor([scene.actuation.insertion], dtype=torch.float64).repeat(B, 1)
+        D = D * (0.4 + 0.6 * torch.rand(B, 1, generator=gen, dtype=torch.float64))
+        Z = torch.zeros(B, 3, dtype=torch.float64)
+        disc = tp.SolverOptions().discretization(2)
+        nq = n_coordinates(N, disc.n_basis)
+        plan = plan_for(scene, torch.float64, torch.device("cpu"))
+        lay, maps = plan.layout(plan.tubes, D, rot, Z, Z, torch.zeros(B, dtype=torch.bool),
+                                disc, nq)
+        tab = disc.tables(torch.float64, torch.device("cpu"))
+        got = _default_guess(lay, maps, tab, disc, N)
+        f = node_fields(torch.zeros(B, nq, dtype=torch.float64), lay, tab["xq"], tab["phi_q"],
+                        tab["Q_q"])
+        EI = lay.EI[:, None, None, :] * lay.present[:, :, None, :]
+        u = (EI[..., None] * f["Ru"]).sum(-2) / EI.sum(-1, keepdim=True).clamp(min=1e-30)
+        a = 0.5 * torch.einsum("bsgd,gp,g->bsdp", u, tab["phi_q"], tab["wq"])
+        X = torch.zeros(B, 2 * N, 2 + N, disc.n_basis, dtype=torch.float64)
+        X[:, :, :2] = a
+        want = torch.cat([torch.zeros(B, N, dtype=torch.float64), X.reshape(B, -1)], -1)
+        want = want * lay.qmask
+        assert torch.allclose(got, want, rtol=1e-12, atol=1e-12)
+        assert bool((got[lay.qmask == 0] == 0).all())

@@ -22,6 +22,7 @@ from .mechanics import (
     expand_q,
     pose_constants,
     pose_node_constants,
+    sum_dim,
     tip_pose,
 )
 from .newton import (
@@ -679,7 +680,7 @@ def _solve_order(scene, tubes, D, A, F, M, order, n_magnus, opts, q_init, plan: 
                              f"size for {N} tubes")
         q = _resize_q(q_init.to(dtype=dtype, device=device), N, n_from, disc.n_basis)
     else:
-        q = _default_guess(lay, tab, disc, N)
+        q = _default_guess(lay, maps, tab, disc, N)
     q = q * lay.qmask
     L_char = (lay.ell.amax(-1) + D.amax(-1)).clamp(min=1e-6)           # (B,)
     prob = Problem(lay, tab, maps, with_load, has_moment)
@@ -696,22 +697,33 @@ def _solve_order(scene, tubes, D, A, F, M, order, n_magnus, opts, q_init, plan: 
     return res
 
 
-def _default_guess(lay, tab, disc, N):
+def _default_guess(lay, maps, tab, disc, N):
     """Torsionless guess: tubes keep their base angles, the backbone bends with the
-    stiffness-weighted average of the rotated precurvatures (exact without torsion, eq. 31)."""
-    from .mechanics import node_fields
-
+    stiffness-weighted average of the rotated precurvatures (exact without torsion, eq. 31).
+    Built on the kernel's compact sections (``maps``, :func:`torchpvs.mechanics.build_maps`):
+    only they carry coordinates; the tube angles there are the base angles plus the twist of
+    the prescribed sections before them."""
     B = lay.h.shape[0]
     nq = n_coordinates(N, disc.n_basis)
-    q0 = torch.zeros(B, nq, dtype=lay.h.dtype, device=lay.h.device)
-    f = node_fields(q0, lay, tab["xq"], tab["phi_q"], tab["Q_q"])
-    EI = lay.EI[:, None, None, :] * lay.present[:, :, None, :]
-    u_avg = (EI[..., None] * f["Ru"]).sum(-2) / EI.sum(-1, keepdim=True).clamp(min=1e-30)
+    cidx = maps["cidx"]
+    S = maps["h"].shape[1]
+    n = disc.n_basis
+    inc = maps["presc_inc"]                                           # (B, S_full, N)
+    start = lay.psi0[:, None, :] + torch.cumsum(inc, 1) - inc
+    sec = torch.div(cidx[:, N::(2 + N) * n] - N, (2 + N) * n, rounding_mode="floor")
+    psi = torch.gather(start, 1, sec[:, :, None].expand(B, S, N))[:, :, None, :]
+    us = maps["ustar"]                                                # (B, S, Q, N, 3)
+    cs, sn = torch.cos(psi), torch.sin(psi)
+    Rx = cs * us[..., 0] - sn * us[..., 1]
+    Ry = sn * us[..., 0] + cs * us[..., 1]
+    # stiffness-weighted (present tubes): EIw / EIws, the node weights cancel
+    wgt = maps["EIw"] / maps["EIws"][..., None].clamp(min=1e-300)
+    u_avg = torch.stack([sum_dim(wgt * Rx, -1), sum_dim(wgt * Ry, -1)], -1)   # (B, S, Q, 2)
     a = 0.5 * torch.einsum("bsgd,gp,g->bsdp", u_avg, tab["phi_q"], tab["wq"])
-    X = torch.zeros(B, 2 * N, 2 + N, disc.n_basis, dtype=q0.dtype, device=q0.device)
+    X = torch.zeros(B, S, 2 + N, n, dtype=a.dtype, device=a.device)
     X[:, :, :2, :] = a
-    q0[:, N:] = X.reshape(B, -1)
-    return q0
+    qc = torch.cat([torch.zeros(B, N, dtype=a.dtype, device=a.device), X.reshape(B, -1)], -1)
+    return expand_q(qc, cidx, nq)
 
 
 def with_options(options: SolverOptions | None, **changes) -> SolverOptions:
