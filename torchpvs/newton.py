@@ -19,7 +19,7 @@ The default kernel, ``"newton"``, is lean where a batch spends its time:
 from __future__ import annotations
 
 from collections.abc import Callable
-from typing import NamedTuple
+from typing import TYPE_CHECKING, NamedTuple
 
 import torch
 
@@ -32,6 +32,9 @@ from .mechanics import (
     skew_vee,
     tip_pose,
 )
+
+if TYPE_CHECKING:
+    from .sections import Layout
 
 __all__ = ["KERNELS", "NewtonResult", "Problem", "active_index", "chunked", "compact",
            "compact_scaled", "derivatives", "expand", "merit", "newton", "stability_threshold",
@@ -58,7 +61,7 @@ class NewtonResult(NamedTuple):
 class Problem(NamedTuple):
     """What a kernel needs: the layout, quadrature tables and precomputed maps of one batch."""
 
-    lay: dict
+    lay: Layout | None        # None in an unloaded subset (unused there: see subset)
     tab: dict
     maps: dict
     with_load: bool
@@ -68,12 +71,24 @@ class Problem(NamedTuple):
 _SHARED = ("phi", "Qb", "values_T", "Q_QQ", "phi_PQ")   # maps entries without a batch dim
 
 
+# maps entries the merit reads without a tip load (mechanics.elastic_energy_maps)
+_MERIT = ("bvec", "qmask", "psi0", "h", "ustar", "EIw", "GJw", "guide", "guide_const")
+
+
 def subset(prob: Problem, idx: torch.Tensor | slice, merit_only: bool = False) -> Problem:
     """The problem restricted to batch rows ``idx`` (indices, or a slice for views without a
-    copy; the merit needs no Hessian constants)."""
-    lay = type(prob.lay)(*(v[idx] for v in prob.lay))
+    copy). Only what is read is copied: the layout only with a tip load (the elastic terms
+    live in the maps; without load the subset's ``lay`` is None), and for ``merit_only`` only
+    the energy's entries (and the pose's, with a load)."""
+    lay = type(prob.lay)(*(v[idx] for v in prob.lay)) if prob.with_load else None
+
+    def wanted(k: str) -> bool:
+        if not merit_only:
+            return True
+        return k in _MERIT or (prob.with_load and (k == "cidx" or k.startswith("pose_")))
+
     maps = {k: (v if k in _SHARED else v[idx]) for k, v in prob.maps.items()
-            if not (merit_only and k == "H_const")}
+            if k in _SHARED or wanted(k)}
     return prob._replace(lay=lay, maps=maps)
 
 
