@@ -456,14 +456,20 @@ def _line_search(q, step, g, prob: Problem, todo, trust, max_halvings: int = 30)
     t = torch.full_like(f0r, 0.5)
     done = torch.zeros_like(f0r, dtype=torch.bool)
     out = qr + t[:, None] * sr
+    todo_r = torch.arange(len(rej), device=q.device)  # rows still halving (the rest accepted)
+    sub_r = sub
     for _ in range(max_halvings - 1):
-        trial = qr + t[:, None] * sr
-        ok = _armijo(merit(trial, sub, qr), f0r, t, slr) & ~done
-        out = torch.where(ok[:, None], trial, out)
-        done = done | ok
+        trial = qr[todo_r] + t[todo_r, None] * sr[todo_r]
+        ok = _armijo(merit(trial, sub_r, qr[todo_r]), f0r[todo_r], t[todo_r], slr[todo_r])
+        acc = todo_r[ok]
+        out[acc] = trial[ok]
+        done[acc] = True
         if bool(done.all()):
             break
         t = torch.where(done, t, 0.5 * t)
+        if bool(ok.any()):   # only the rows still rejecting are evaluated again
+            keep = (~ok).nonzero().flatten()
+            todo_r, sub_r = todo_r[keep], subset(sub_r, keep, merit_only=True)
     # Elements whose line search failed keep a tiny step along the direction (progress guard).
     out = torch.where(done[:, None], out, qr + t[:, None] * sr)
     q_new[rej] = out
