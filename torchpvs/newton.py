@@ -351,10 +351,14 @@ def _saddle_test(q, H, g, scale, new, prob: Problem, L_char, act):
     # not, is there a negative eigenvalue (a saddle)? Without forming S H S:
     # S (H - tau diag|H_ii|) S is congruent to it (diag|H_ii| = S^-2 on the active rows; the
     # inactive ones are identity rows and stay positive).
-    Hc = compact(H[sel], a)
-    Hc.diagonal(dim1=-2, dim2=-1).sub_(stability_threshold(H.dtype)
-                                        * Hc.diagonal(dim1=-2, dim2=-1).abs())
+    whole = a is None and len(sel) == H.shape[0]
+    Hc = H if whole else compact(H[sel], a)   # no copy of the whole batch's Hessians:
+    diag = Hc.diagonal(dim1=-2, dim2=-1)      # shift the diagonal in place, restore it exactly
+    d0 = diag.clone() if whole else None
+    diag.sub_(stability_threshold(H.dtype) * diag.abs())
     _, info = torch.linalg.cholesky_ex(Hc)
+    if whole:
+        diag.copy_(d0)
     bad = info != 0
     left = torch.zeros_like(new)
     pd = torch.full(new.shape, -1, dtype=torch.int8, device=new.device)

@@ -26,6 +26,7 @@ from .mechanics import (
     tip_pose,
 )
 from .newton import (
+    CHUNK_BYTES,
     KERNELS,
     Problem,
     active_index,
@@ -637,8 +638,15 @@ def _rotation_predictor(initial, q_init, scene, tubes, D, A, F, M, opts):
     dA = dA - (2 * math.pi) * torch.round(dA / (2 * math.pi))
     rhs = torch.zeros_like(qmask_c)
     rhs[:, :N] = tubes.GJ.expand(B, N) * dA
-    L, fail = torch.linalg.cholesky_ex(Hc)
-    x = torch.cholesky_solve(rhs[..., None], L)[..., 0]
+    # (in cache-sized row chunks, as the kernel: one factorization of a large batch at once
+    # is slower)
+    n = Hc.shape[-1]
+    chunk = max(16, CHUNK_BYTES // (n * n * Hc.element_size()))
+    x = torch.empty_like(rhs)
+    fail = torch.empty(B, dtype=torch.int32, device=D.device)
+    for s in range(0, B, chunk):
+        L, fail[s:s + chunk] = torch.linalg.cholesky_ex(Hc[s:s + chunk])
+        x[s:s + chunk] = torch.cholesky_solve(rhs[s:s + chunk, :, None], L)[..., 0]
     x[:, :N] -= dA / torch.where(D > 0, D, torch.ones_like(D))
     dq = expand_q(x * qmask_c, cidx, q_init.shape[-1])
     length = float(tubes.length.max())
