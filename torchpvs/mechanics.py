@@ -28,7 +28,7 @@ if TYPE_CHECKING:
 __all__ = ["angle_offsets", "compact_hessian", "compact_q", "elastic_energy", "expand_hessian",
            "expand_q", "magnus_twists", "node_constants", "node_fields", "poly",
            "pose_constants", "pose_node_constants", "potential", "section_start_poses",
-           "split_q", "sum_dim", "tip_pose"]
+           "split_q", "start_angles", "sum_dim", "tip_pose"]
 
 
 def sum_dim(x: torch.Tensor, dim: int) -> torch.Tensor:
@@ -132,15 +132,24 @@ def _pose_sections(lay: Layout, c: dict[str, torch.Tensor]) -> dict[str, torch.T
             "presc_local": take_sections(c["presc_local"])}
 
 
-def angle_offsets(w: torch.Tensor, c: torch.Tensor, lay: Layout,
-                  presc_inc: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+def angle_offsets(w: torch.Tensor, c: torch.Tensor, lay: Layout, presc_inc: torch.Tensor,
+                  h: torch.Tensor | None = None) -> tuple[torch.Tensor, torch.Tensor]:
     """Tube angles at the orifice ``psi0 (..., N)`` = base rotation, twist of the curved material
     held in the guide and ``D_j w_j``, and each section's angle increment ``inc (..., S, N)`` =
     ``h_k`` times its mean torsion (plus a prescribed section's twist ``presc_inc``, from
     :func:`node_constants`). ``w``, ``c``: the guide twists and torsion coefficients of
-    :func:`split_q`. The angle at the start of section ``k`` is ``psi0`` plus the increments of
-    the sections before it, whatever the evaluation points."""
-    return lay.psi0 + lay.D * w, lay.h[..., None] * c[..., 0] + presc_inc
+    :func:`split_q`; ``h``: the section lengths of ``c``'s sections (default the layout's; a
+    subset of them for :func:`pose_node_constants`). The angle at the start of section ``k`` is
+    ``psi0`` plus the increments of the sections before it (:func:`start_angles`), whatever the
+    evaluation points."""
+    h = lay.h if h is None else h
+    return lay.psi0 + lay.D * w, h[..., None] * c[..., 0] + presc_inc
+
+
+def start_angles(psi0: torch.Tensor, inc: torch.Tensor) -> torch.Tensor:
+    """``(..., S, N)``: the tube angles at the start of every section, ``psi0 (..., N)`` plus the
+    increments ``inc (..., S, N)`` of the sections before it (:func:`angle_offsets`)."""
+    return psi0[..., None, :] + torch.cumsum(inc, -2) - inc
 
 
 def node_fields(q: torch.Tensor, lay: Layout, xi: torch.Tensor,
@@ -164,7 +173,7 @@ def node_fields(q: torch.Tensor, lay: Layout, xi: torch.Tensor,
     u = (a @ phi.transpose(-1, -2)).transpose(-1, -2)                    # (..., S, G, 2)
     dpsi = (c @ phi.transpose(-1, -2)).transpose(-1, -2)                 # (..., S, G, N)
     psi0, inc = angle_offsets(w, c, lay, const["presc_inc"])
-    psi_start = psi0[..., None, :] + torch.cumsum(inc, -2) - inc
+    psi_start = start_angles(psi0, inc)
     psi = (psi_start[..., None, :] + 0.5 * h[..., None, None] *
            (c @ Qb.transpose(-1, -2)).transpose(-1, -2) + const["presc_local"])
     cs, sn = torch.cos(psi), torch.sin(psi)
@@ -247,10 +256,8 @@ def _tip_frame(q: torch.Tensor, lay: Layout, tab: dict[str, torch.Tensor],
     a = torch.gather(a, -3, sec[..., None, None].expand(a.shape[:-3] + (Sp,) + a.shape[-2:]))
     c = torch.gather(c, -3, sec[..., None, None].expand(c.shape[:-3] + (Sp,) + c.shape[-2:]))
     phi, Qb = tab["phi_m"], tab["Q_m"]
-    # angle_offsets on the kept sections (its increments use their lengths h)
-    psi0 = lay.psi0 + lay.D * w
-    inc = h[..., None] * c[..., 0] + const["presc_inc"]
-    psi_start = psi0[..., None, :] + torch.cumsum(inc, -2) - inc
+    psi0, inc = angle_offsets(w, c, lay, const["presc_inc"], h)       # the kept sections
+    psi_start = start_angles(psi0, inc)
     psi = (psi_start[..., None, :] + 0.5 * h[..., None, None] *
            (c @ Qb.transpose(-1, -2)).transpose(-1, -2) + const["presc_local"])
     cs, sn = torch.cos(psi), torch.sin(psi)

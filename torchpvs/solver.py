@@ -22,6 +22,7 @@ from .mechanics import (
     expand_q,
     pose_constants,
     pose_node_constants,
+    start_angles,
     sum_dim,
     tip_pose,
 )
@@ -716,8 +717,7 @@ def _default_guess(lay, maps, tab, disc, N):
     cidx = maps["cidx"]
     S = maps["h"].shape[1]
     n = disc.n_basis
-    inc = maps["presc_inc"]                                           # (B, S_full, N)
-    start = lay.psi0[:, None, :] + torch.cumsum(inc, 1) - inc
+    start = start_angles(lay.psi0, maps["presc_inc"])                 # (B, S_full, N), q = 0
     sec = torch.div(cidx[:, N::(2 + N) * n] - N, (2 + N) * n, rounding_mode="floor")
     psi = torch.gather(start, 1, sec[:, :, None].expand(B, S, N))[:, :, None, :]
     us = maps["ustar"]                                                # (B, S, Q, N, 3)
