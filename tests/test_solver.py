@@ -193,6 +193,33 @@ def test_order_selection_reports_error_estimate():
     assert prev.order >= 3                                     # 1e-9 is beyond order 2
 
 
+def test_magnus_step_count_check_bounds_the_pose_error():
+    """The automatic Magnus count (docs/accuracy.md): kept when the tip moves less than
+    accuracy/2 from half the steps, else doubled. Against the same order's tip with 128 steps
+    (4th-order Magnus: ~1e-13 m off here; closed-form check in test_mechanics): the chosen
+    count's pose error is within accuracy/2, the counts grow as the accuracy tightens, and the
+    reported estimate is not below the pose error (its half-step check is an upper estimate)."""
+    sc = tp.load_scene("renda2021_fig3")
+    rot = torch.tensor([[0.0, a] for a in (0.3, 1.7, 3.0, 4.2)], dtype=torch.float64)
+    counts = []
+    for acc in (1e-5, 1e-7, 1e-9):
+        fixed = tp.solve(sc, rotation=rot, options=tp.SolverOptions(
+            order=3, accuracy=acc, compute_forces=False))
+        fine = tp.solve(sc, rotation=rot, options=tp.SolverOptions(
+            order=3, n_magnus=128, compute_forces=False))
+        err = (fixed.tip_position - fine.tip_position).norm(dim=-1)
+        assert bool((err <= acc / 2).all()), (acc, err)
+        counts.append(fixed._ctx["disc"].n_magnus)
+        auto = tp.solve(sc, rotation=rot, options=tp.SolverOptions(accuracy=acc,
+                                                                   compute_forces=False))
+        ref = tp.solve(sc, rotation=rot, options=tp.SolverOptions(
+            order=auto.order, n_magnus=128, compute_forces=False))
+        pose_err = (auto.tip_position - ref.tip_position).norm(dim=-1)
+        assert bool((pose_err <= auto.error_estimate).all()), (acc, pose_err,
+                                                               auto.error_estimate)
+    assert counts[0] == 8 and counts == sorted(counts) and counts[-1] > 8, counts
+
+
 def test_fully_retracted_tube_and_zero_length_sections():
     """A tube entirely in the guide contributes no coordinates; cuts that coincide make
     zero-length sections, which must not make the Hessian singular."""

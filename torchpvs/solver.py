@@ -84,10 +84,11 @@ class SolverOptions:
         max_iter: Newton iterations per order.
         n_quad: Gauss points per section (default ``2 (order + 1) + 4``).
         n_magnus: 4th-order Magnus steps per section for the backbone pose. ``None``
-            (default) = automatic: starting from the warm start's count (else 8),
-            the tip is recomputed with twice the steps and the count doubled (and the
-            equilibrium re-solved) until the two agree within ``accuracy / 2``; that
-            difference is added to ``Equilibrium.error_estimate``.
+            (default) = automatic: the warm start's count (else 8) is kept if the tip moves
+            less than ``accuracy / 2`` when recomputed with half the steps; otherwise the tip
+            is recomputed with twice the steps and the count doubled (and the equilibrium
+            re-solved) until the two agree within ``accuracy / 2``. The last tip change is
+            added to ``Equilibrium.error_estimate``.
         dtype: ``torch.float64`` (default for physics) or ``torch.float32``; ``None`` = from the
             given tensors, else float64.
         device: torch device; ``None`` = from the given tensors, else CPU.
@@ -425,7 +426,12 @@ def _order_estimate(scene, tubes, D, A, F, M, res, opts: SolverOptions, plan: Pl
     tip change it makes. Newton converges quadratically from there, so the step lands within
     the square of the truncation error of the next order's solution: the estimate costs one
     gradient/Hessian evaluation, one factorization and one tip pose instead of a full solve.
-    Returns ``(estimate (B,), coordinates at order + 1 to warm-start it)``."""
+
+    The tip change is measured with half the Magnus steps (:func:`_coarse_tips`): the pose
+    integration error of the two tips cancels to first order in their difference, and the
+    solution's coarse tip is what the step-count check (:func:`_refine_magnus`) compares with
+    first, so one half-cost pose call serves both checks. Returns ``(estimate (B,),
+    coordinates at order + 1 to warm-start it)``; ``res["tip_coarse"]`` gets the coarse tip."""
     N = scene.n_tubes
     order = res["order"] + 1
     disc = replace(opts.discretization(order), n_magnus=res["disc"].n_magnus)
@@ -436,18 +442,34 @@ def _order_estimate(scene, tubes, D, A, F, M, res, opts: SolverOptions, plan: Pl
     prob = Problem(lay, tab, maps, res["with_load"], res["has_moment"])
     q = _resize_q(res["q"], N, n_from, disc.n_basis) * lay.qmask
     q1, ok = _newton_step(q, prob)
-    if "tip" in res:
+    if "tip" not in res:
+        # The solution's own pose (_solve_order(pose=False)): padded to the next order, its
+        # strain field is the same (the Legendre basis is hierarchical).
+        tip, R, _ = tip_pose(q, lay, tab, pose_constants(maps))
+        res["tip"], res["R"] = tip, R
+        res["converged"] = res["converged"] & torch.isfinite(tip).all(-1)
+    coarse = _coarse_tips(torch.stack([q, q1]), disc, lay, maps, plan)
+    if coarse is None:                   # an odd step count: the tip change at full steps
         tip1, _, _ = tip_pose(q1, lay, tab, pose_constants(maps))
+        est = (tip1 - res["tip"]).norm(dim=-1)
     else:
-        # The solution's own pose too (_solve_order(pose=False)), in the same call: padded to
-        # the next order, its strain field is the same (the Legendre basis is hierarchical).
-        both, R, _ = tip_pose(torch.stack([q, q1]), lay, tab, pose_constants(maps))
-        tip1 = both[1]
-        res["tip"], res["R"] = both[0], R[0]
-        res["converged"] = res["converged"] & torch.isfinite(both[0]).all(-1)
-    est = (tip1 - res["tip"]).norm(dim=-1)
+        res["tip_coarse"] = coarse[0]
+        est = (coarse[1] - coarse[0]).norm(dim=-1)
     est = torch.where(ok & torch.isfinite(est), est, torch.full_like(est, float("inf")))
     return est, q1
+
+
+def _coarse_tips(q, disc, lay, maps, plan: Plan):
+    """Tip positions ``(..., B, 3)`` of coordinates ``q (..., B, nq)`` with half of
+    ``disc.n_magnus`` Magnus steps per section (``None`` when that count is odd); the pose
+    constants of those nodes are kept with the layout (:meth:`Plan.cached`)."""
+    m = disc.n_magnus
+    if m % 2:
+        return None
+    tab = replace(disc, n_magnus=m // 2).tables(q.dtype, q.device)
+    const = plan.cached(disc, lay, f"pose_constants_{m // 2}",
+                        lambda: pose_node_constants(lay, tab["xm"]))
+    return tip_pose(q, lay, tab, const)[0]
 
 
 def _newton_step(q, prob: Problem):
@@ -557,30 +579,39 @@ def _load_ramp(scene, tubes, D, A, F, M, res, opts: SolverOptions, plan: Plan, q
 
 def _refine_magnus(scene, tubes, D, A, F, M, res, opts: SolverOptions, plan: Plan,
                    work: _Work | None = None):
-    """Double the Magnus steps until the tip moves less than ``accuracy / 2`` (4th order: the
-    remaining error of the finer count is ~1/15 of that change). The equilibrium coordinates do
-    not depend on the pose integration unless a tip load is applied, so the check is a tip
-    recomputation; only a refinement re-solves (warm, usually one Newton step)."""
+    """Choose the Magnus step count: ``m`` steps are kept when the tip moves less than
+    ``accuracy / 2`` from half as many, and that change is the estimate reported (an upper
+    one: where the 4th order holds, the m-step error is ~1/15 of it; one half-cost pose,
+    usually already made by :func:`_order_estimate`); otherwise the steps are doubled until the tip moves less than
+    ``accuracy / 2`` when they double again (the remaining error of the finer count is ~1/15
+    of that change). The equilibrium coordinates do not depend on the pose integration unless
+    a tip load is applied, so the checks are tip recomputations; only a refinement re-solves
+    (warm, usually one Newton step)."""
     m = res["disc"].n_magnus
     order_err = res.get("error_estimate")  # a fixed order has no basis estimate: stays NaN
-    while True:
-        fine = replace(res["disc"], n_magnus=2 * m)
-        tab = fine.tables(D.dtype, D.device)
-        lay = res["lay"]
-        const = plan.cached(res["disc"], lay, f"pose_constants_{2 * m}",
-                            lambda: pose_node_constants(lay, tab["xm"]))  # noqa: B023 - used now
-        tip_fine, _, _ = tip_pose(res["q"], lay, tab, const)
-        est = (tip_fine - res["tip"]).norm(dim=-1)
-        if bool((est <= opts.accuracy / 2).all()) or 2 * m > _MAGNUS_MAX \
-                or (work is not None and work.exhausted):
-            break
-        m *= 2
-        ramp = res.get("ramp")
-        res = _solve_order(scene, tubes, D, A, F, M, res["order"], m, opts, res["q"], plan)
-        if work is not None:
-            work.spend(res)
-        if ramp is not None:
-            res["ramp"] = ramp
+    coarse = res.get("tip_coarse")
+    if coarse is None:
+        coarse = _coarse_tips(res["q"], res["disc"], res["lay"], res["maps"], plan)
+    est = None if coarse is None else (coarse - res["tip"]).norm(dim=-1)
+    if est is None or not bool((est <= opts.accuracy / 2).all()):
+        while True:
+            fine = replace(res["disc"], n_magnus=2 * m)
+            tab = fine.tables(D.dtype, D.device)
+            lay = res["lay"]
+            const = plan.cached(res["disc"], lay, f"pose_constants_{2 * m}",
+                                lambda: pose_node_constants(lay, tab["xm"]))  # noqa: B023
+            tip_fine, _, _ = tip_pose(res["q"], lay, tab, const)
+            est = (tip_fine - res["tip"]).norm(dim=-1)
+            if bool((est <= opts.accuracy / 2).all()) or 2 * m > _MAGNUS_MAX \
+                    or (work is not None and work.exhausted):
+                break
+            m *= 2
+            ramp = res.get("ramp")
+            res = _solve_order(scene, tubes, D, A, F, M, res["order"], m, opts, res["q"], plan)
+            if work is not None:
+                work.spend(res)
+            if ramp is not None:
+                res["ramp"] = ramp
     if order_err is not None:
         res["error_estimate"] = order_err + est
     res["magnus_estimate"] = est
