@@ -15,7 +15,7 @@ from typing import NamedTuple
 
 import torch
 
-from .mechanics import node_fields, poly, potential, sum_dim, tip_pose
+from .mechanics import node_constants, node_fields, poly, potential, sum_dim, tip_pose
 from .sections import build_layout
 
 __all__ = ["closed_form_partials", "envelope_forces", "envelope_forces_autograd",
@@ -74,18 +74,21 @@ def envelope_forces_closed_form(tubes, res):
         if lay is None or lay.D.shape != D.shape or not torch.equal(lay.D, D):
             lay = build_layout(tubes, D, res["alpha"], res["F"], res["M"], res["loaded"],
                                res["disc"])
-        return closed_form_partials(res["q"], lay, tubes, res["tab"], res["disc"])
+        return closed_form_partials(res["q"], lay, tubes, res["tab"], res["disc"],
+                                    res.get("node_constants"))
 
 
-def closed_form_partials(q, lay, tubes, tab, disc):
+def closed_form_partials(q, lay, tubes, tab, disc, const=None):
     """The body of :func:`envelope_forces_closed_form` on a layout ``lay`` of the insertions:
     ``(dU/dD, dU/dalpha)`` at ``q``, elastic energy only. Differentiable: with ``lay`` built
     from insertions and rotations that require grad (and ``q`` too), one reverse pass gives the
     second derivatives ``U_Dq``, ``U_DD``, ``U_Dalpha``
-    (:func:`torchpvs.jacobians.actuator_stiffness`)."""
+    (:func:`torchpvs.jacobians.actuator_stiffness`). ``const``: the layout's
+    :func:`~torchpvs.mechanics.node_constants` at the quadrature nodes, where known (no
+    gradient with respect to the layout then flows through them)."""
     D = lay.D
     B, N = D.shape
-    f = node_fields(q, lay, tab["xq"], tab["phi_q"], tab["Q_q"])
+    f = node_fields(q, lay, tab["xq"], tab["phi_q"], tab["Q_q"], const)
     dt, dev = q.dtype, q.device
     L, Ls = tubes.length.expand(B, N), tubes.straight.expand(B, N)
     coef = lay.coef                                                   # (B, N, 3, P)
@@ -363,8 +366,18 @@ def equilibrium_forces(tubes, res, resolve, delta: float = 1e-7, tol: float = 1e
 
     kp = analyse() if cache is None else cache(f"kinks_{delta}_{tol}", analyse)
     kink, blocked = kp.kink.clone(), kp.blocked      # the cached mask is not handed out
+
+    def with_constants(state, name):
+        # The closed form's node constants depend on the layouts only, which the cache keeps
+        # (the sides' layout follows from the solve's: same insertions, same kink plan).
+        if cache is None or state["with_load"] or state["lay"].D.shape != state["D"].shape:
+            return state
+        xq = state["tab"]["xq"]
+        return dict(state, node_constants=cache(
+            f"{name}_{delta}_{tol}", lambda: node_constants(state["lay"], xq)))
+
     if kp.sel is None:
-        forces, torques = envelope_forces(tubes, res)
+        forces, torques = envelope_forces(tubes, with_constants(res, "force_nodes"))
         insertion = forces.clone()
         insertion[blocked] = float("nan")
         return forces, torques, insertion, kink
@@ -375,7 +388,7 @@ def equilibrium_forces(tubes, res, resolve, delta: float = 1e-7, tol: float = 1e
     if "lay" in side:     # the sides' layout, built by the re-solve: no second build
         both["lay"] = type(res["lay"])(*(torch.cat(pair) for pair in zip(res["lay"], side["lay"],
                                                                          strict=True)))
-    allf, allt = envelope_forces(tubes, both)
+    allf, allt = envelope_forces(tubes, with_constants(both, "force_nodes_sides"))
     forces, torques, vals = allf[:B], allt[:B], allf[B:][torch.arange(len(sel)), sj]
     insertion = forces.clone()
     insertion[blocked] = float("nan")
