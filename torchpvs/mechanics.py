@@ -416,17 +416,16 @@ def build_maps(lay: Layout, tab: dict[str, torch.Tensor],
     T = torch.einsum("bsqj,qp,qr->bsjpr", W[..., None] * GJp, phi, phi)     # torsion blocks
     guide = torch.zeros(B, nc, dtype=dtype, device=device)
     guide[:, :N] = lay.GJ.detach() * lay.D.detach() * qmask[:, :N]
-    H_const = torch.zeros(B, nc, nc, dtype=dtype, device=device)
-    H_const.diagonal(dim1=-2, dim2=-1)[:, :N] = guide[:, :N]
-    # Section-diagonal blocks written through strided views (no dense scatter): A (x) I_2 on the
-    # bending coefficients, T_kj on tube j's torsion coefficients. Both vanish on inactive
-    # coordinates (zero weight W or zero stiffness of an absent tube), so no mask is needed.
-    cc = _section_blocks(H_const, N, S, C, n).diagonal(dim1=1, dim2=3)   # (B, n, n, S, C)
-    cc[..., :2] = A.permute(0, 2, 3, 1)[..., None]
-    cc[..., 2:] = T.permute(0, 3, 4, 1, 2)
+    # The q-independent Hessian is the guide diagonal plus section-diagonal blocks, kept as
+    # blocks (B, n, n, S, C) for the strided view of elastic_grad_hess (no dense (nq, nq) copy):
+    # A (x) I_2 on the bending coefficients, T_kj on tube j's torsion coefficients. Both vanish
+    # on inactive coordinates (zero weight W or zero stiffness of an absent tube).
+    blocks = torch.empty(B, n, n, S, C, dtype=dtype, device=device)
+    blocks[..., :2] = A.permute(0, 2, 3, 1)[..., None]
+    blocks[..., 2:] = T.permute(0, 3, 4, 1, 2)
     EIw = W[..., None] * EIp                      # node weights x stiffness (B, S, Q, N)
     return {"ustar": ustar.detach(), "EIw": EIw, "EIws": sum_dim(EIw, -1),
-            "GJw": W[..., None] * GJp, "H_const": H_const,
+            "GJw": W[..., None] * GJp, "H_blocks": blocks,
             "guide": guide, "guide_const": lay.guide_const.detach(), "h": h,
             "qmask": qmask, "psi0": lay.psi0.detach(), "bvec": bvec, "cidx": cidx,
             "presc_inc": full["presc_inc"].detach(),
@@ -525,8 +524,8 @@ def elastic_energy_maps(q: torch.Tensor, maps: dict[str, torch.Tensor]) -> torch
 def elastic_grad_hess(q: torch.Tensor, maps: dict[str, torch.Tensor]):
     """Exact gradient ``(B, nq)`` and Hessian ``(B, nq, nq)`` of the elastic energy.
 
-    The Hessian is assembled as ``T + T^T`` with ``T = H_const / 2 + b^T V`` (one batched GEMM over
-    the ``S N`` angle bases) plus the within-section blocks written through strided views:
+    The Hessian is assembled as ``b^T V + V^T b`` (one batched GEMM over twice the ``S N`` angle
+    bases) plus the guide diagonal and the within-section blocks written through strided views:
     every term vanishes on inactive coordinates by construction (zero quadrature weight or zero
     stiffness), so no dense mask pass is made."""
     ux, uy, dp, Rx, Ry, us = _local(q, maps)
@@ -558,17 +557,22 @@ def elastic_grad_hess(q: torch.Tensor, maps: dict[str, torch.Tensor]):
     MP = hup @ maps["phi_PQ"]                                               # (B, S, N, 2, n+n^2)
     mu = MP[..., :n]                                                        # (B, S, N, 2, n)
     nu = hh[..., None, None] * MP[..., n:].reshape(B, S, N, 2, n, n)
-    # b_kj-rows: alpha b b^T + b (beta at c_kj)^T + (mu at a_k) b^T, then symmetrized.
+    # H = b^T V + V^T b + (guide diagonal and within-section blocks), with V = alpha b / 2 plus
+    # beta at (kj, c_kj) and mu at (kj, a_k): b^T V + V^T b is ONE GEMM, [b; V]^T [V; b], that
+    # writes H once and reads no dense constant (the passes over (B, nq, nq), not the
+    # arithmetic, bound large batches); the rest is written through strided views.
     V = 0.5 * alpha.reshape(B, -1, 1) * bflat                               # (B, S N, nq)
     Vc = V[:, :, N:].view(B, S, N, S, C, n).diagonal(dim1=1, dim2=3)        # (B, N, C, n, S)
     Vc[:, :, 2:].diagonal(dim1=1, dim2=2).add_(beta.permute(0, 3, 1, 2))    # (B, n, S, N)
-    # Half the (symmetric) constant part rides along, so that H = T + T^T in one pass.
-    T = torch.baddbmm(maps["H_const"], bflat.transpose(1, 2), V, beta=0.5)
-    T[:, N:, :].view(B, S, C, n, nq)[:, :, :2] += (
-        mu.reshape(B, S, N, 2 * n).transpose(-1, -2) @ bvec).view(B, S, 2, n, nq)
-    # Blocks within a section: gamma (c_kj, c_kj), counted twice by T + T^T, and nu (a_k, c_kj)
-    # on one side only.
-    blocks = _section_blocks(T, N, S, C, n)                                 # (B, C, n, C, n, S)
-    blocks[:, 2:, :, 2:].diagonal(dim1=1, dim2=3).add_(0.5 * gamma.permute(0, 3, 4, 1, 2))
-    blocks[:, :2, :, 2:] += nu.permute(0, 3, 4, 2, 5, 1)
-    return grad, T + T.transpose(1, 2)
+    Vc[:, :, :2] += mu.permute(0, 2, 3, 4, 1)                               # (B, N, 2, n, S)
+    H = torch.bmm(torch.cat([bflat, V], 1).transpose(1, 2), torch.cat([V, bflat], 1))
+    H.diagonal(dim1=-2, dim2=-1).add_(maps["guide"])
+    # Blocks within a section: the constant ones, gamma (c_kj, c_kj), nu (a_k, c_kj) both sides.
+    blocks = _section_blocks(H, N, S, C, n)                                 # (B, C, n, C, n, S)
+    cc = blocks.diagonal(dim1=1, dim2=3)                                    # (B, n, n, S, C)
+    cc += maps["H_blocks"]
+    cc[..., 2:] += gamma.permute(0, 3, 4, 1, 2)
+    nu_b = nu.permute(0, 3, 4, 2, 5, 1)                                     # (B, 2, n, N, n, S)
+    blocks[:, :2, :, 2:] += nu_b
+    blocks[:, 2:, :, :2] += nu_b.permute(0, 3, 4, 1, 2, 5)
+    return grad, H
