@@ -513,7 +513,10 @@ def _local(q: torch.Tensor, maps: dict[str, torch.Tensor]):
 
 def elastic_energy_maps(q: torch.Tensor, maps: dict[str, torch.Tensor]) -> torch.Tensor:
     """Same value as :func:`elastic_energy`, through the precomputed structure (``q (B, nq)``)."""
-    ux, uy, dp, Rx, Ry, us = _local(q, maps)
+    return _energy_from_fields(q, maps, *_local(q, maps))
+
+
+def _energy_from_fields(q, maps, ux, uy, dp, Rx, Ry, us):
     dx, dy = ux[..., None] - Rx, uy[..., None] - Ry
     tors = dp - us[..., 2]
     dens = 0.5 * sum_dim(maps["EIw"] * (dx * dx + dy * dy) + maps["GJw"] * tors * tors, -1)
@@ -521,14 +524,17 @@ def elastic_energy_maps(q: torch.Tensor, maps: dict[str, torch.Tensor]) -> torch
     return dens.sum((-1, -2)) + guide + maps["guide_const"]
 
 
-def elastic_grad_hess(q: torch.Tensor, maps: dict[str, torch.Tensor]):
-    """Exact gradient ``(B, nq)`` and Hessian ``(B, nq, nq)`` of the elastic energy.
+def elastic_grad_hess(q: torch.Tensor, maps: dict[str, torch.Tensor], energy: bool = False):
+    """Exact gradient ``(B, nq)`` and Hessian ``(B, nq, nq)`` of the elastic energy; with
+    ``energy=True`` also the energy ``(B,)`` itself, bit for bit :func:`elastic_energy_maps`
+    (from the same node fields: a line search's energy at the iterate costs no extra pass).
 
     The Hessian is assembled as ``b^T V + V^T b`` (one batched GEMM over twice the ``S N`` angle
     bases) plus the guide diagonal and the within-section blocks written through strided views:
     every term vanishes on inactive coordinates by construction (zero quadrature weight or zero
     stiffness), so no dense mask pass is made."""
     ux, uy, dp, Rx, Ry, us = _local(q, maps)
+    U = _energy_from_fields(q, maps, ux, uy, dp, Rx, Ry, us) if energy else None
     B, nq = q.shape
     bvec, phi, Qb = maps["bvec"], maps["phi"], maps["Qb"]
     _, S, N, _ = bvec.shape
@@ -575,4 +581,4 @@ def elastic_grad_hess(q: torch.Tensor, maps: dict[str, torch.Tensor]):
     nu_b = nu.permute(0, 3, 4, 2, 5, 1)                                     # (B, 2, n, N, n, S)
     blocks[:, :2, :, 2:] += nu_b
     blocks[:, 2:, :, :2] += nu_b.permute(0, 3, 4, 1, 2, 5)
-    return grad, H
+    return (grad, H, U) if energy else (grad, H)

@@ -141,11 +141,22 @@ def expand(v: torch.Tensor, act: torch.Tensor | None, nq: int) -> torch.Tensor:
     return torch.zeros(v.shape[0], nq, dtype=v.dtype, device=v.device).scatter_(1, act, v)
 
 
-def derivatives(q: torch.Tensor, prob: Problem):
+def derivatives(q: torch.Tensor, prob: Problem, energy: bool = False):
     """Gradient ``(B, nq)`` and Hessian ``(B, nq, nq)`` of the total potential: analytic for the
     elastic energy, autograd (``vmap(jacfwd(grad))``) only for the tip-load term, which needs the
-    Magnus chain."""
+    Magnus chain. ``energy=True``: also the potential ``(B,)`` as :func:`merit` gives it, where
+    it comes free with the derivatives (no tip load), else ``None``."""
+    if energy:
+        g, H, U = elastic_grad_hess(q, prob.maps, energy=True)
+        if prob.with_load:
+            U = None
+        return (*_with_load_terms(q, prob, g, H), U)
     g, H = elastic_grad_hess(q, prob.maps)
+    return _with_load_terms(q, prob, g, H)
+
+
+def _with_load_terms(q, prob: Problem, g, H):
+    """``(g, H)`` plus the tip load's terms where the problem has a load."""
     if prob.with_load:
         Hl, gl = _load_hessian(prob.tab, prob.has_moment)(
             q, prob.lay, pose_constants(prob.maps), prob.maps["cidx"], q.detach())
@@ -271,7 +282,10 @@ def _newton(q: torch.Tensor, prob: Problem, L_char: torch.Tensor, *, method: str
     act = active_index(prob.maps["qmask"])
     for _ in range(max_iter + 1):
         qmask = sub.maps["qmask"]
-        g, H = derivatives(q, sub)
+        if method == "minimize":   # the energy at q comes free: the line search's reference
+            g, H, U = derivatives(q, sub, energy=True)
+        else:
+            (g, H), U = derivatives(q, sub), None
         H.diagonal(dim1=-2, dim2=-1).add_(1.0 - qmask)
         res, scale = scaled_residual(g, H, Lc)
         conv = res < tol
@@ -286,6 +300,7 @@ def _newton(q: torch.Tensor, prob: Problem, L_char: torch.Tensor, *, method: str
                 if bool(left.any()):
                     escapes += 1
                     q_out[idx] = q
+                    U = None          # moved off the saddle: the energy there is not U
         converged[idx] = conv
         todo = ~conv & torch.isfinite(q).all(-1)
         n_todo = int(todo.sum())
@@ -301,6 +316,7 @@ def _newton(q: torch.Tensor, prob: Problem, L_char: torch.Tensor, *, method: str
             keep = todo.nonzero().flatten()
             idx, q, g, H, scale, lam, tested, Lc = (t[keep] for t in
                                                     (idx, q, g, H, scale, lam, tested, Lc))
+            U = None if U is None else U[keep]
             sub = subset(sub, keep)
             todo = torch.ones_like(lam, dtype=torch.bool)
             qmask = sub.maps["qmask"]
@@ -315,7 +331,7 @@ def _newton(q: torch.Tensor, prob: Problem, L_char: torch.Tensor, *, method: str
             # evaluation -- the quadratic model's relative error is O(1e-3) there, far inside
             # Armijo's margin (the decrease is -g.s/2 against the 1e-4 g.s asked for).
             trust = (lam == 0) & (step.abs().amax(-1) * Lc < 1e-3)
-            q_new, accepted = _line_search(q, step, g, sub, todo, trust)
+            q_new, accepted = _line_search(q, step, g, sub, todo, trust, U)
             # Accepted steps shrink the damping 10x (4x took about 10 % more cold iterations,
             # with the same branches: docs/performance.md); damping below 1e-2 (of the
             # unit-diagonal scaled Hessian) is dropped: the pure Newton phase converges
@@ -438,11 +454,12 @@ def _armijo(f, f0, t, slope):
             | (f - f0 <= resolution)) & torch.isfinite(f)
 
 
-def _line_search(q, step, g, prob: Problem, todo, trust, max_halvings: int = 30):
+def _line_search(q, step, g, prob: Problem, todo, trust, f_q=None, max_halvings: int = 30):
     """Backtracking (Armijo) on the potential, per element, for the elements of ``todo`` not in
     ``trust`` (those take the full step unchecked); after the full step only the elements that
-    rejected it are re-evaluated. Returns the new coordinates and the mask of elements that
-    accepted the full step."""
+    rejected it are re-evaluated. ``f_q``: the potential at ``q`` where known (``(B,)``, as
+    :func:`merit`). Returns the new coordinates and the mask of elements that accepted the full
+    step."""
     check = todo & ~trust
     rows = check.nonzero().flatten()
     q_new = torch.where(todo[:, None], q + step, q)
@@ -452,7 +469,7 @@ def _line_search(q, step, g, prob: Problem, todo, trust, max_halvings: int = 30)
     whole = rows.numel() == q.shape[0]
     sub = prob if whole else subset(prob, rows, merit_only=True)
     qc, sc = (q, step) if whole else (q[rows], step[rows])
-    f0 = merit(qc, sub, qc)
+    f0 = merit(qc, sub, qc) if f_q is None else (f_q if whole else f_q[rows])
     slope = (g[rows] * sc).sum(-1)
     ok = _armijo(merit(qc + sc, sub, qc), f0, 1.0, slope)
     accepted[rows] = ok
