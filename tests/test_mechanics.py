@@ -25,6 +25,7 @@ from torchpvs.mechanics import (
     node_constants,
     node_fields,
     pose_constants,
+    section_grad_block,
     sum_dim,
     tip_pose,
 )
@@ -70,6 +71,44 @@ def test_analytic_derivatives_match_autograd(order, scene_name):
     assert ((g - gA) * m).abs().max() <= 1e-12 * gA.abs().max()
     assert ((H - HA) * mm).abs().max() <= 1e-12 * HA.abs().max()
 
+
+
+def test_section_block_is_the_hessian_block_without_angle_basis_terms():
+    """section_grad_block: the gradient is elastic_grad_hess's, and the block of compact
+    section k equals the full Hessian's block on that section's coordinates except on the
+    pairs of its mean torsions (c_kj0, c_kj'0), which the angles of the sections after it
+    couple (b^T V, O(h_k^2)); for the last section (nothing after it) the blocks are equal."""
+    dt = torch.float64
+    sc = tp.load_scene("renda2021_fig3")
+    tubes = tube_tensors(sc, dt, torch.device("cpu"))
+    torch.manual_seed(3)
+    B, N = 4, 2
+    D = torch.tensor([sc.actuation.insertion], dtype=dt).expand(B, N).clone()
+    D[:, 0] -= 0.004
+    A = torch.rand(B, N, dtype=dt) * 6
+    zeros = torch.zeros(B, 3, dtype=dt)
+    disc = SolverOptions().discretization(2)
+    lay = build_layout(tubes, D, A, zeros, zeros, torch.zeros(B, dtype=torch.bool), disc)
+    tab = disc.tables(dt, torch.device("cpu"))
+    maps = build_maps(lay, tab, n_coordinates(N, disc.n_basis))
+    qc = torch.randn(B, maps["cidx"].shape[-1], dtype=dt) * 5 * maps["qmask"]
+    g, H = elastic_grad_hess(qc, maps)
+    S = maps["h"].shape[1]
+    n, C = disc.n_basis, 2 + N
+    for k in range(S):
+        gk, blk = section_grad_block(qc, maps, torch.full((B,), k))
+        assert torch.equal(gk, g)
+        i = N + k * C * n + torch.arange(C * n)
+        full = H[:, i][:, :, i]
+        mean_torsion = torch.zeros(C * n, dtype=torch.bool)
+        mean_torsion[2 * n::n] = True
+        pairs = mean_torsion[:, None] & mean_torsion[None, :]
+        scale = full.abs().max()
+        assert ((blk - full)[:, ~pairs]).abs().max() <= 1e-13 * scale
+        if k == S - 1:
+            assert (blk - full).abs().max() <= 1e-13 * scale
+        else:
+            assert (blk - full)[:, pairs].abs().max() > 0   # the left-out terms exist
 
 @settings(max_examples=60, deadline=None)
 @given(st.lists(st.floats(-3.0, 3.0), min_size=6, max_size=6),

@@ -348,8 +348,9 @@ def equilibrium_forces(tubes, res, resolve, delta: float = 1e-7, tol: float = 1e
     straight-to-curved transition (``D_j = Ls_j``: curvature enters the guide) or its end
     (``D_j = L_j``) -- or a cut that moves with ``D_j`` meeting another tube's. There the
     derivative differs for insertion and retraction. Each side is taken at an equilibrium
-    ``delta`` away on that side (where ``U*`` is smooth), from ``resolve`` (usually no solve, at
-    most one Newton step); the error is ``O(delta)``. The equilibrium and every kink side go
+    ``delta`` away on that side (where ``U*`` is smooth), from ``resolve`` (usually no solve; a
+    step for the coordinates of a section of length ``delta`` that appears, or at most one
+    Newton step); the error is ``O(delta)``. The equilibrium and every kink side go
     through ONE envelope-theorem evaluation (in closed form without tip load, else one reverse
     pass).
 

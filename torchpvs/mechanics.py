@@ -16,7 +16,7 @@ and per element under ``torch.func.vmap`` (for exact Hessians).
 
 from __future__ import annotations
 
-from typing import TYPE_CHECKING
+from typing import TYPE_CHECKING, NamedTuple
 
 import torch
 
@@ -524,22 +524,31 @@ def _energy_from_fields(q, maps, ux, uy, dp, Rx, Ry, us):
     return dens.sum((-1, -2)) + guide + maps["guide_const"]
 
 
-def elastic_grad_hess(q: torch.Tensor, maps: dict[str, torch.Tensor], energy: bool = False):
-    """Exact gradient ``(B, nq)`` and Hessian ``(B, nq, nq)`` of the elastic energy; with
-    ``energy=True`` also the energy ``(B,)`` itself, bit for bit :func:`elastic_energy_maps`
-    (from the same node fields: a line search's energy at the iterate costs no extra pass).
+class _ElasticTerms(NamedTuple):
+    """Node sums of one evaluation of the elastic energy's derivatives (see
+    :func:`elastic_grad_hess`): the gradient ``(B, nq)``, the energy ``(B,)`` (or None), the
+    angle bases ``bflat (B, S N, nq)``, and the Hessian's node sums per section and tube:
+    ``alpha (B, S, N)``, ``beta (B, S, N, n)``, ``gamma (B, S, N, n, n)``, ``mu (B, S, N, 2, n)``,
+    ``nu (B, S, N, 2, n, n)``."""
 
-    The Hessian is assembled as ``b^T V + V^T b`` (one batched GEMM over twice the ``S N`` angle
-    bases) plus the guide diagonal and the within-section blocks written through strided views:
-    every term vanishes on inactive coordinates by construction (zero quadrature weight or zero
-    stiffness), so no dense mask pass is made."""
+    grad: torch.Tensor
+    energy: torch.Tensor | None
+    bflat: torch.Tensor
+    alpha: torch.Tensor
+    beta: torch.Tensor
+    gamma: torch.Tensor
+    mu: torch.Tensor
+    nu: torch.Tensor
+
+
+def _elastic_terms(q: torch.Tensor, maps: dict[str, torch.Tensor],
+                   energy: bool = False) -> _ElasticTerms:
     ux, uy, dp, Rx, Ry, us = _local(q, maps)
     U = _energy_from_fields(q, maps, ux, uy, dp, Rx, Ry, us) if energy else None
     B, nq = q.shape
     bvec, phi, Qb = maps["bvec"], maps["phi"], maps["Qb"]
     _, S, N, _ = bvec.shape
     n = phi.shape[-1]
-    C = 2 + N
     EIw, EIs = maps["EIw"], maps["EIws"]                                    # (B, S, Q, N), sum
     ERx, ERy = EIw * Rx, EIw * Ry
     gu = torch.stack([EIs * ux - sum_dim(ERx, -1), EIs * uy - sum_dim(ERy, -1)], -2)
@@ -554,31 +563,70 @@ def elastic_grad_hess(q: torch.Tensor, maps: dict[str, torch.Tensor], energy: bo
     grad[:, N:] += gX.reshape(B, -1) * maps["qmask"][:, N:]
     # Angle terms of the Hessian, reduced over nodes per (section, tube).
     hpp = ERx * ux[..., None] + ERy * uy[..., None]                         # (B, S, Q, N)
-    alpha = hpp.sum(2)                                                      # (B, S, N)
     HQ = hpp.transpose(-1, -2) @ maps["Q_QQ"]                               # (B, S, N, n + n^2)
-    beta = hh * HQ[..., :n]                                                 # (B, S, N, n)
-    gamma = hh[..., None] ** 2 * HQ[..., n:].reshape(B, S, N, n, n)
     # d2e/du dpsi_j = -EI_j J Ru_j = EI_j (Ry, -Rx), laid out (B, S, N, 2, Q) for one product.
     hup = torch.stack([ERy.transpose(-1, -2), -ERx.transpose(-1, -2)], -2)
     MP = hup @ maps["phi_PQ"]                                               # (B, S, N, 2, n+n^2)
-    mu = MP[..., :n]                                                        # (B, S, N, 2, n)
-    nu = hh[..., None, None] * MP[..., n:].reshape(B, S, N, 2, n, n)
+    return _ElasticTerms(
+        grad, U, bflat, alpha=hpp.sum(2), beta=hh * HQ[..., :n],
+        gamma=hh[..., None] ** 2 * HQ[..., n:].reshape(B, S, N, n, n), mu=MP[..., :n],
+        nu=hh[..., None, None] * MP[..., n:].reshape(B, S, N, 2, n, n))
+
+
+def elastic_grad_hess(q: torch.Tensor, maps: dict[str, torch.Tensor], energy: bool = False):
+    """Exact gradient ``(B, nq)`` and Hessian ``(B, nq, nq)`` of the elastic energy; with
+    ``energy=True`` also the energy ``(B,)`` itself, bit for bit :func:`elastic_energy_maps`
+    (from the same node fields: a line search's energy at the iterate costs no extra pass).
+
+    The Hessian is assembled as ``b^T V + V^T b`` (one batched GEMM over twice the ``S N`` angle
+    bases) plus the guide diagonal and the within-section blocks written through strided views:
+    every term vanishes on inactive coordinates by construction (zero quadrature weight or zero
+    stiffness), so no dense mask pass is made."""
+    t = _elastic_terms(q, maps, energy)
+    bflat = t.bflat
+    B, SN, nq = bflat.shape
+    n = maps["phi"].shape[-1]
+    N = maps["bvec"].shape[2]
+    S, C = SN // N, 2 + N
     # H = b^T V + V^T b + (guide diagonal and within-section blocks), with V = alpha b / 2 plus
     # beta at (kj, c_kj) and mu at (kj, a_k): b^T V + V^T b is ONE GEMM, [b; V]^T [V; b], that
     # writes H once and reads no dense constant (the passes over (B, nq, nq), not the
     # arithmetic, bound large batches); the rest is written through strided views.
-    V = 0.5 * alpha.reshape(B, -1, 1) * bflat                               # (B, S N, nq)
+    V = 0.5 * t.alpha.reshape(B, -1, 1) * bflat                             # (B, S N, nq)
     Vc = V[:, :, N:].view(B, S, N, S, C, n).diagonal(dim1=1, dim2=3)        # (B, N, C, n, S)
-    Vc[:, :, 2:].diagonal(dim1=1, dim2=2).add_(beta.permute(0, 3, 1, 2))    # (B, n, S, N)
-    Vc[:, :, :2] += mu.permute(0, 2, 3, 4, 1)                               # (B, N, 2, n, S)
+    Vc[:, :, 2:].diagonal(dim1=1, dim2=2).add_(t.beta.permute(0, 3, 1, 2))  # (B, n, S, N)
+    Vc[:, :, :2] += t.mu.permute(0, 2, 3, 4, 1)                             # (B, N, 2, n, S)
     H = torch.bmm(torch.cat([bflat, V], 1).transpose(1, 2), torch.cat([V, bflat], 1))
     H.diagonal(dim1=-2, dim2=-1).add_(maps["guide"])
     # Blocks within a section: the constant ones, gamma (c_kj, c_kj), nu (a_k, c_kj) both sides.
     blocks = _section_blocks(H, N, S, C, n)                                 # (B, C, n, C, n, S)
     cc = blocks.diagonal(dim1=1, dim2=3)                                    # (B, n, n, S, C)
     cc += maps["H_blocks"]
-    cc[..., 2:] += gamma.permute(0, 3, 4, 1, 2)
-    nu_b = nu.permute(0, 3, 4, 2, 5, 1)                                     # (B, 2, n, N, n, S)
+    cc[..., 2:] += t.gamma.permute(0, 3, 4, 1, 2)
+    nu_b = t.nu.permute(0, 3, 4, 2, 5, 1)                                   # (B, 2, n, N, n, S)
     blocks[:, :2, :, 2:] += nu_b
     blocks[:, 2:, :, :2] += nu_b.permute(0, 3, 4, 1, 2, 5)
-    return (grad, H, U) if energy else (grad, H)
+    return (t.grad, H, t.energy) if energy else (t.grad, H)
+
+
+def section_grad_block(q: torch.Tensor, maps: dict[str, torch.Tensor], sec: torch.Tensor):
+    """The elastic energy's gradient ``(B, nq)`` and the block ``(B, C n, C n)`` of its Hessian
+    on the coordinates of compact section ``sec (B,)`` (one per element; ``C = 2 + N``), without
+    the terms through the angle bases: those couple the section's mean torsions through the
+    angles of the sections after it and are ``O(h^2)`` for a section of length ``h``, against
+    ``O(h)`` for the block. For a section of vanishing length (the one-sided equilibria of
+    :func:`torchpvs.forces.equilibrium_forces`) the block is thus exact to relative ``O(h)``,
+    with no ``(nq, nq)`` Hessian made."""
+    t = _elastic_terms(q, maps)
+    B = q.shape[0]
+    n = maps["phi"].shape[-1]
+    N = maps["bvec"].shape[2]
+    C = 2 + N
+    rows = torch.arange(B, device=q.device)
+    blk = torch.zeros(B, C, n, C, n, dtype=q.dtype, device=q.device)
+    blk.diagonal(dim1=1, dim2=3).copy_(maps["H_blocks"][rows, :, :, sec])  # (B, n, n, C)
+    blk[:, 2:, :, 2:].diagonal(dim1=1, dim2=3).add_(t.gamma[rows, sec].permute(0, 2, 3, 1))
+    nu_b = t.nu[rows, sec].permute(0, 2, 3, 1, 4)                          # (B, 2, n, N, n)
+    blk[:, :2, :, 2:] += nu_b
+    blk[:, 2:, :, :2] += nu_b.permute(0, 3, 4, 1, 2)
+    return t.grad, blk.reshape(B, C * n, C * n)

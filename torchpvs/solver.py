@@ -22,6 +22,7 @@ from .mechanics import (
     expand_q,
     pose_constants,
     pose_node_constants,
+    section_grad_block,
     start_angles,
     sum_dim,
     tip_pose,
@@ -352,9 +353,9 @@ def solve_tensors(scene: Scene, tubes: TubeTensors, D, A, F, M, opts: SolverOpti
         # Forces at equilibria a distance delta ~ 1e-7 m away (insertions Dn, rows sel of the
         # batch). Where the section structure there equals this one (same active coordinates),
         # q* moves by O(delta) and dU*/dD = dU/dD at fixed q to O(delta) (envelope theorem):
-        # no solve. Where a section of length delta appears, ONE Newton step from q (its error
-        # is O(delta^2) in the coordinates that move by O(delta), and the energy of the new
-        # section is quadratic in its coordinates to O(delta)).
+        # no solve. Where a section of length delta appears, its coordinates are solved for
+        # with the others held (_new_section_step: O(delta), like the rest), or where that does
+        # not apply (a tip load, a guide twist appearing), by ONE Newton step from q.
         An, Fn, Mn, q0 = A[sel], F[sel], M[sel], res["q"][sel]
         disc = res["disc"]
         nq = q0.shape[-1]
@@ -369,7 +370,16 @@ def solve_tensors(scene: Scene, tubes: TubeTensors, D, A, F, M, opts: SolverOpti
             prob = subset(Problem(lay, res["tab"], maps, res["with_load"], res["has_moment"]),
                            moved)
             q1 = q1.clone()
-            q1[moved] = _newton_step(q1[moved], prob)[0]
+            qm, ok = q1[moved], torch.zeros(q1[moved].shape[0], dtype=torch.bool,
+                                            device=q1.device)
+            if not res["with_load"]:
+                new = (lay.qmask[moved] > 0) & ~(res["lay"].qmask[sel][moved] > 0)
+                qm, ok = _new_section_step(qm, prob, new, float(tubes.length.max()))
+            rest = (~ok).nonzero().flatten()
+            if rest.numel():
+                qm = qm.clone()
+                qm[rest] = _newton_step(qm[rest], subset(prob, rest))[0]
+            q1[moved] = qm
         return {"q": q1, "D": Dn, "alpha": An, "F": Fn, "M": Mn, "loaded": loaded, "lay": lay}
 
     def resolve_all(options, initial_):
@@ -505,6 +515,46 @@ def _one_newton_step(q, prob: Problem):
     return torch.where(ok[:, None], q1, q), ok
 
 
+# A section this short (x the longest tube) counts as vanishing for _new_section_step.
+_VANISHING = 1e-5
+
+
+def _new_section_step(q, prob: Problem, new: torch.Tensor, length: float):
+    """The coordinates ``new (B, nq)`` (bool), those of a section of vanishing length ``h`` that
+    appears at a one-sided equilibrium, solved for with the others held: one Newton step on
+    their block of the elastic energy (:func:`torchpvs.mechanics.section_grad_block`). Held
+    coordinates are off by ``O(h)`` (the new section's pull on the rest), and the block's terms
+    through the angle bases are ``O(h)`` of it, so the result is ``O(h)`` accurate, like the
+    one-sided forces evaluated there, at the cost of a gradient, not a Hessian and its
+    factorization. Unloaded problems only (a tip load's work moves with the section's strains
+    at the same order). Returns the coordinates and the rows where it applied (new coordinates
+    in one compact section, no guide twist among them, the section shorter than
+    ``_VANISHING x length``, its block positive definite); other rows are returned unchanged."""
+    maps = prob.maps
+    cidx = maps["cidx"]
+    B, nq = q.shape
+    N = maps["bvec"].shape[2]
+    S = maps["h"].shape[1]
+    qc = compact_q(q, cidx)
+    cn = (qc.shape[-1] - N) // S
+    newc = torch.gather(new, 1, cidx)
+    has = newc[:, N:].reshape(B, S, cn).any(-1)                           # (B, S)
+    sec = has.to(torch.int8).argmax(-1)
+    rows = torch.arange(B, device=q.device)
+    g, blk = section_grad_block(qc, maps, sec)
+    m = newc[:, N:].reshape(B, S, cn)[rows, sec].to(q.dtype)            # (B, C n)
+    gs = g[:, N:].reshape(B, S, cn)[rows, sec] * m
+    A = blk * m[:, :, None] * m[:, None, :] + torch.diag_embed(1.0 - m)
+    L, info = torch.linalg.cholesky_ex(A)
+    d = -torch.cholesky_solve(gs[..., None], L)[..., 0] * m
+    ok = ((has.sum(-1) == 1) & ~newc[:, :N].any(-1) & (info == 0) & torch.isfinite(d).all(-1)
+          & (maps["h"][rows, sec] <= _VANISHING * length))
+    X = qc[:, N:].reshape(B, S, cn)
+    X[rows, sec] = X[rows, sec] + d
+    q1 = expand_q(torch.cat([qc[:, :N], X.reshape(B, -1)], -1), cidx, nq)
+    return torch.where(ok[:, None], q1, q), ok
+
+
 def _loaded(F, M, opts: SolverOptions) -> torch.Tensor:
     """``(B,)`` elements with a tip load (or forced load coordinates)."""
     return (F.abs().sum(-1) > 0) | (M.abs().sum(-1) > 0) | opts.load_coordinates
@@ -582,11 +632,11 @@ def _refine_magnus(scene, tubes, D, A, F, M, res, opts: SolverOptions, plan: Pla
     """Choose the Magnus step count: ``m`` steps are kept when the tip moves less than
     ``accuracy / 2`` from half as many, and that change is the estimate reported (an upper
     one: where the 4th order holds, the m-step error is ~1/15 of it; one half-cost pose,
-    usually already made by :func:`_order_estimate`); otherwise the steps are doubled until the tip moves less than
-    ``accuracy / 2`` when they double again (the remaining error of the finer count is ~1/15
-    of that change). The equilibrium coordinates do not depend on the pose integration unless
-    a tip load is applied, so the checks are tip recomputations; only a refinement re-solves
-    (warm, usually one Newton step)."""
+    usually already made by :func:`_order_estimate`); otherwise the steps are doubled until
+    the tip moves less than ``accuracy / 2`` when they double again (the remaining error of
+    the finer count is ~1/15 of that change). The equilibrium coordinates do not depend on the
+    pose integration unless a tip load is applied, so the checks are tip recomputations; only
+    a refinement re-solves (warm, usually one Newton step)."""
     m = res["disc"].n_magnus
     order_err = res.get("error_estimate")  # a fixed order has no basis estimate: stays NaN
     coarse = res.get("tip_coarse")
