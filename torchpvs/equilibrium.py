@@ -83,8 +83,9 @@ class Equilibrium:
             (dimensionless) Hessian; computed on first access.
         dofs: ``(B,)`` number of active generalized coordinates.
         order: basis degree used; ``error_estimate``: ``(B,)`` [m] a posteriori tip error: the
-            tip change from the previous order (automatic order selection) plus the tip change
-            from doubling the Magnus steps (automatic ``n_magnus``); NaN when the order is fixed.
+            tip change of one Newton step of the next order (automatic order selection) plus
+            the tip change from halving the Magnus steps, or from doubling them where the count
+            was refined (automatic ``n_magnus``); NaN when the order is fixed.
         accuracy_met: ``(B,)`` bool, ``error_estimate <= options.accuracy``; False where no
             estimate exists (a fixed order). An automatic solve that cannot meet the request
             (``max_order`` or the Magnus cap reached) also warns.
