@@ -468,13 +468,16 @@ def _order_estimate(scene, tubes, D, A, F, M, res, opts: SolverOptions, plan: Pl
 
 def _coarse_tips(q, disc, lay, maps, plan: Plan):
     """Tip positions ``(..., B, 3)`` of coordinates ``q (..., B, nq)`` with half of
-    ``disc.n_magnus`` Magnus steps per section (``None`` when that count is odd); the pose
-    constants of those nodes are kept with the layout (:meth:`Plan.cached`)."""
+    ``disc.n_magnus`` Magnus steps per section (``None`` when that count is odd)."""
     m = disc.n_magnus
-    if m % 2:
-        return None
-    tab = replace(disc, n_magnus=m // 2).tables(q.dtype, q.device)
-    const = plan.cached(disc, lay, f"pose_constants_{m // 2}",
+    return None if m % 2 else _tips_with_steps(q, disc, lay, plan, m // 2)
+
+
+def _tips_with_steps(q, disc, lay, plan: Plan, m: int):
+    """Tip positions of ``q`` on the layout ``lay`` of ``disc`` with ``m`` Magnus steps per
+    section; the pose constants of those nodes are kept with the layout (:meth:`Plan.cached`)."""
+    tab = replace(disc, n_magnus=m).tables(q.dtype, q.device)
+    const = plan.cached(disc, lay, f"pose_constants_{m}",
                         lambda: pose_node_constants(lay, tab["xm"]))
     return tip_pose(q, lay, tab, const)[0]
 
@@ -642,12 +645,7 @@ def _refine_magnus(scene, tubes, D, A, F, M, res, opts: SolverOptions, plan: Pla
     est = None if coarse is None else (coarse - res["tip"]).norm(dim=-1)
     if est is None or not bool((est <= opts.accuracy / 2).all()):
         while True:
-            fine = replace(res["disc"], n_magnus=2 * m)
-            tab = fine.tables(D.dtype, D.device)
-            lay = res["lay"]
-            const = plan.cached(res["disc"], lay, f"pose_constants_{2 * m}",
-                                lambda: pose_node_constants(lay, tab["xm"]))  # noqa: B023
-            tip_fine, _, _ = tip_pose(res["q"], lay, tab, const)
+            tip_fine = _tips_with_steps(res["q"], res["disc"], res["lay"], plan, 2 * m)
             est = (tip_fine - res["tip"]).norm(dim=-1)
             if bool((est <= opts.accuracy / 2).all()) or 2 * m > _MAGNUS_MAX \
                     or (work is not None and work.exhausted):
