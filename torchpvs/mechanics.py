@@ -417,15 +417,17 @@ def build_maps(lay: Layout, tab: dict[str, torch.Tensor],
     guide = torch.zeros(B, nc, dtype=dtype, device=device)
     guide[:, :N] = lay.GJ.detach() * lay.D.detach() * qmask[:, :N]
     # The q-independent Hessian is the guide diagonal plus section-diagonal blocks, kept as
-    # blocks (B, n, n, S, C) for the strided view of elastic_grad_hess (no dense (nq, nq) copy):
-    # A (x) I_2 on the bending coefficients, T_kj on tube j's torsion coefficients. Both vanish
-    # on inactive coordinates (zero weight W or zero stiffness of an absent tube).
-    blocks = torch.empty(B, n, n, S, C, dtype=dtype, device=device)
-    blocks[..., :2] = A.permute(0, 2, 3, 1)[..., None]
-    blocks[..., 2:] = T.permute(0, 3, 4, 1, 2)
+    # whole section blocks (B, S, C, n, C, n) (no dense (nq, nq) copy): A (x) I_2 on the bending
+    # coefficients, T_kj on tube j's torsion coefficients. elastic_grad_hess adds the
+    # q-dependent block terms to a copy and writes H's block diagonal in ONE strided pass. Both
+    # vanish on inactive coordinates (zero weight W or zero stiffness of an absent tube).
+    blocks = torch.zeros(B, S, C, n, C, n, dtype=dtype, device=device)
+    diag = blocks.diagonal(dim1=2, dim2=4)                                 # (B, S, n, n, C)
+    diag[..., :2] = A[..., None]
+    diag[..., 2:] = T.permute(0, 1, 3, 4, 2)
     EIw = W[..., None] * EIp                      # node weights x stiffness (B, S, Q, N)
     return {"ustar": ustar.detach(), "EIw": EIw, "EIws": sum_dim(EIw, -1),
-            "GJw": W[..., None] * GJp, "H_blocks": blocks,
+            "GJw": W[..., None] * GJp, "H_sections": blocks,
             "guide": guide, "guide_const": lay.guide_const.detach(), "h": h,
             "qmask": qmask, "psi0": lay.psi0.detach(), "bvec": bvec, "cidx": cidx,
             "presc_inc": full["presc_inc"].detach(),
@@ -485,13 +487,6 @@ def _node_tables(phi: torch.Tensor, Qb: torch.Tensor) -> dict[str, torch.Tensor]
             "phi_PQ": torch.cat([phi, PQ], -1).contiguous()}
 
 
-def _section_blocks(H: torch.Tensor, N: int, S: int, C: int, n: int) -> torch.Tensor:
-    """Writable view ``(B, C, n, C, n, S)`` of the within-section blocks of ``H[:, N:, N:]``
-    (coordinates ordered section, component, basis function)."""
-    B = H.shape[0]
-    return H[:, N:, N:].view(B, S, C, n, S, C, n).diagonal(dim1=1, dim2=4)
-
-
 def _local(q: torch.Tensor, maps: dict[str, torch.Tensor]):
     """Node fields on the compact coordinates: backbone bending ``ux, uy (B, S, Q)``, torsions
     ``dp (B, S, Q, N)``, ``Rz(psi) u*_xy`` as ``Rx, Ry (B, S, Q, N)`` and the precurvatures
@@ -528,17 +523,20 @@ class _ElasticTerms(NamedTuple):
     """Node sums of one evaluation of the elastic energy's derivatives (see
     :func:`elastic_grad_hess`): the gradient ``(B, nq)``, the energy ``(B,)`` (or None), the
     angle bases ``bflat (B, S N, nq)``, and the Hessian's node sums per section and tube:
-    ``alpha (B, S, N)``, ``beta (B, S, N, n)``, ``gamma (B, S, N, n, n)``, ``mu (B, S, N, 2, n)``,
-    ``nu (B, S, N, 2, n, n)``."""
+    ``alpha (B, S, N)``, ``beta (B, S, N, n)``, ``mu (B, S, N, 2, n)``; the within-section
+    terms ``gamma = hh^2 gq`` and ``nu = hh nq`` with ``hh (B, S)`` half the section lengths,
+    ``gq (B, S, N, n, n)`` and ``nq (B, S, N, 2, n, n)`` (views: each consumer scales only the
+    entries it uses, in the layout it writes)."""
 
     grad: torch.Tensor
     energy: torch.Tensor | None
     bflat: torch.Tensor
     alpha: torch.Tensor
     beta: torch.Tensor
-    gamma: torch.Tensor
     mu: torch.Tensor
-    nu: torch.Tensor
+    hh: torch.Tensor
+    gq: torch.Tensor
+    nq: torch.Tensor
 
 
 def _elastic_terms(q: torch.Tensor, maps: dict[str, torch.Tensor],
@@ -568,9 +566,9 @@ def _elastic_terms(q: torch.Tensor, maps: dict[str, torch.Tensor],
     hup = torch.stack([ERy.transpose(-1, -2), -ERx.transpose(-1, -2)], -2)
     MP = hup @ maps["phi_PQ"]                                               # (B, S, N, 2, n+n^2)
     return _ElasticTerms(
-        grad, U, bflat, alpha=hpp.sum(2), beta=hh * HQ[..., :n],
-        gamma=hh[..., None] ** 2 * HQ[..., n:].reshape(B, S, N, n, n), mu=MP[..., :n],
-        nu=hh[..., None, None] * MP[..., n:].reshape(B, S, N, 2, n, n))
+        grad, U, bflat, alpha=hpp.sum(2), beta=hh * HQ[..., :n], mu=MP[..., :n],
+        hh=hh[:, :, 0, 0], gq=HQ[..., n:].reshape(B, S, N, n, n),
+        nq=MP[..., n:].reshape(B, S, N, 2, n, n))
 
 
 def elastic_grad_hess(q: torch.Tensor, maps: dict[str, torch.Tensor], energy: bool = False):
@@ -579,9 +577,10 @@ def elastic_grad_hess(q: torch.Tensor, maps: dict[str, torch.Tensor], energy: bo
     (from the same node fields: a line search's energy at the iterate costs no extra pass).
 
     The Hessian is assembled as ``b^T V + V^T b`` (one batched GEMM over twice the ``S N`` angle
-    bases) plus the guide diagonal and the within-section blocks written through strided views:
-    every term vanishes on inactive coordinates by construction (zero quadrature weight or zero
-    stiffness), so no dense mask pass is made."""
+    bases) plus the guide diagonal and the within-section blocks (assembled per section, then
+    added to H's block diagonal in one strided pass): every term vanishes on inactive
+    coordinates by construction (zero quadrature weight or zero stiffness), so no dense mask
+    pass is made."""
     t = _elastic_terms(q, maps, energy)
     bflat = t.bflat
     B, SN, nq = bflat.shape
@@ -598,14 +597,18 @@ def elastic_grad_hess(q: torch.Tensor, maps: dict[str, torch.Tensor], energy: bo
     Vc[:, :, :2] += t.mu.permute(0, 2, 3, 4, 1)                             # (B, N, 2, n, S)
     H = torch.bmm(torch.cat([bflat, V], 1).transpose(1, 2), torch.cat([V, bflat], 1))
     H.diagonal(dim1=-2, dim2=-1).add_(maps["guide"])
-    # Blocks within a section: the constant ones, gamma (c_kj, c_kj), nu (a_k, c_kj) both sides.
-    blocks = _section_blocks(H, N, S, C, n)                                 # (B, C, n, C, n, S)
-    cc = blocks.diagonal(dim1=1, dim2=3)                                    # (B, n, n, S, C)
-    cc += maps["H_blocks"]
-    cc[..., 2:] += t.gamma.permute(0, 3, 4, 1, 2)
-    nu_b = t.nu.permute(0, 3, 4, 2, 5, 1)                                   # (B, 2, n, N, n, S)
-    blocks[:, :2, :, 2:] += nu_b
-    blocks[:, 2:, :, :2] += nu_b.permute(0, 3, 4, 1, 2, 5)
+    # Blocks within a section, assembled in a contiguous copy of the constant ones (gamma on
+    # the (c_kj, c_kj) blocks, nu on (a_k, c_kj) and its transpose), then added to H's block
+    # diagonal in one pass: strided adds of each term straight into H cost 3x more.
+    Cn = C * n
+    blk = maps["H_sections"].clone()                                       # (B, S, C, n, C, n)
+    hh = t.hh.reshape(B, S, 1, 1, 1)
+    blk[:, :, 2:, :, 2:].diagonal(dim1=2, dim2=4).addcmul_(hh * hh, t.gq.permute(0, 1, 3, 4, 2))
+    upper = blk[:, :, :2, :, 2:]                                           # (B, S, 2, n, N, n)
+    torch.mul(hh[..., None], t.nq.permute(0, 1, 3, 4, 2, 5), out=upper)   # zero before
+    blk[:, :, 2:, :, :2] = upper.permute(0, 1, 4, 5, 2, 3)
+    H[:, N:, N:].view(B, S, Cn, S, Cn).diagonal(dim1=1, dim2=3).add_(
+        blk.view(B, S, Cn, Cn).permute(0, 2, 3, 1))
     return (t.grad, H, t.energy) if energy else (t.grad, H)
 
 
@@ -623,10 +626,11 @@ def section_grad_block(q: torch.Tensor, maps: dict[str, torch.Tensor], sec: torc
     N = maps["bvec"].shape[2]
     C = 2 + N
     rows = torch.arange(B, device=q.device)
-    blk = torch.zeros(B, C, n, C, n, dtype=q.dtype, device=q.device)
-    blk.diagonal(dim1=1, dim2=3).copy_(maps["H_blocks"][rows, :, :, sec])  # (B, n, n, C)
-    blk[:, 2:, :, 2:].diagonal(dim1=1, dim2=3).add_(t.gamma[rows, sec].permute(0, 2, 3, 1))
-    nu_b = t.nu[rows, sec].permute(0, 2, 3, 1, 4)                          # (B, 2, n, N, n)
-    blk[:, :2, :, 2:] += nu_b
-    blk[:, 2:, :, :2] += nu_b.permute(0, 3, 4, 1, 2)
+    blk = maps["H_sections"][rows, sec]                                    # (B, C, n, C, n)
+    hh = t.hh[rows, sec].reshape(B, 1, 1, 1)
+    blk[:, 2:, :, 2:].diagonal(dim1=1, dim2=3).addcmul_(
+        hh * hh, t.gq[rows, sec].permute(0, 2, 3, 1))
+    upper = blk[:, :2, :, 2:]                                              # (B, 2, n, N, n)
+    torch.mul(hh[..., None], t.nq[rows, sec].permute(0, 2, 3, 1, 4), out=upper)
+    blk[:, 2:, :, :2] = upper.permute(0, 3, 4, 1, 2)
     return t.grad, blk.reshape(B, C * n, C * n)
