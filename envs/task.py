@@ -346,7 +346,10 @@ class ReachBatch:
     def travel_steps(self, idx=None) -> np.ndarray:
         """Control periods the carriages need, at their full-scale speeds, to move from the
         current actuation to the sampled preimage of the goal (rotations wrapped): a lower
-        bound on the time to reach the goal that way (``(B,)``)."""
+        bound on the time to reach the goal that way (``(B,)``). Optimistic as a measure of
+        what is reachable: an insertion against the elastic load is slower, and the wrapped
+        rotation may pass +-180 deg (``benchmarks/reach_ceiling.py`` searches the whole
+        solution set with loaded speeds)."""
         idx = np.arange(self.B) if idx is None else idx
         d = self.goal_actuation[idx] - self.robots.x[idx]
         d[:, self.N:] = np.angle(np.exp(1j * d[:, self.N:]))

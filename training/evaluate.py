@@ -148,7 +148,9 @@ def summarize(res: dict[str, np.ndarray]) -> dict[str, float]:
         "snap_rate": float(res["snap"].mean()),
         "solver_failure_rate": float(res["failure"].mean()),
     })
-    # goals whose sampled preimage the carriages can reach within the episode at full speed
+    # goals whose sampled preimage the carriages can reach within the episode at full speed:
+    # optimistic (unloaded speeds, rotations the short way even across +-180 deg); see
+    # benchmarks/reach_ceiling.py for the loaded, snap-safe search of the solution set
     T = res.get("episode_steps", 100)
     ok = res["travel_steps"] <= T
     s["reachable_in_time_fraction"] = float(ok.mean())
