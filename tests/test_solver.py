@@ -206,14 +206,14 @@ def test_magnus_step_count_check_bounds_the_pose_error():
         fixed = tp.solve(sc, rotation=rot, options=tp.SolverOptions(
             order=3, accuracy=acc, compute_forces=False))
         fine = tp.solve(sc, rotation=rot, options=tp.SolverOptions(
-            order=3, n_magnus=128, compute_forces=False))
+            order=3, n_magnus=128, tol=1e-12, compute_forces=False))
         err = (fixed.tip_position - fine.tip_position).norm(dim=-1)
         assert bool((err <= acc / 2).all()), (acc, err)
         counts.append(fixed._ctx["disc"].n_magnus)
         auto = tp.solve(sc, rotation=rot, options=tp.SolverOptions(accuracy=acc,
                                                                    compute_forces=False))
         ref = tp.solve(sc, rotation=rot, options=tp.SolverOptions(
-            order=auto.order, n_magnus=128, compute_forces=False))
+            order=auto.order, n_magnus=128, tol=1e-12, compute_forces=False))
         pose_err = (auto.tip_position - ref.tip_position).norm(dim=-1)
         assert bool((pose_err <= auto.error_estimate).all()), (acc, pose_err,
                                                                auto.error_estimate)
@@ -457,3 +457,27 @@ def test_default_guess_is_the_torsionless_bending_on_every_active_section():
         want = want * lay.qmask
         assert torch.allclose(got, want, rtol=1e-12, atol=1e-12)
         assert bool((got[lay.qmask == 0] == 0).all())
+
+
+def test_newton_tolerance_follows_the_accuracy():
+    """The kernel stops at ``min(tol, accuracy / (100 L))`` (SolverOptions.tol): the default
+    tol (1e-9) moves the tip far less than the default accuracy, and a tight accuracy tightens
+    the residual with it. Warm 1 deg steps (one Newton iteration lands between the two
+    thresholds on most of them). Reference: the same solves converged to tol = 1e-12."""
+    sc = tp.load_scene("renda2021_fig3")
+    L = max(t.length for t in sc.tubes)
+    rot = torch.tensor([[0.0, a] for a in torch.linspace(0.0, 4.3, 16).tolist()],
+                       dtype=torch.float64)
+    step = torch.tensor([0.0, math.radians(1.0)], dtype=torch.float64)
+    fixed = dict(order=3, n_magnus=16, compute_forces=False)
+    warm = tp.solve(sc, rotation=rot - step, options=tp.SolverOptions(tol=1e-12, **fixed))
+    tight = tp.solve(sc, rotation=rot, initial=warm,                 # the same branch
+                     options=tp.SolverOptions(tol=1e-12, **fixed))
+    for acc, bound in ((1e-5, 1e-9), (1e-9, 1e-9 / (100 * L))):
+        eq = tp.solve(sc, rotation=rot, initial=warm,
+                      options=tp.SolverOptions(accuracy=acc, **fixed))
+        assert bool(eq.converged.all())
+        assert bool((eq.residual_norm < bound).all()), (acc, eq.residual_norm)
+        # the residual's effect on the tip: far inside the accuracy (and below 1e-10 m here)
+        err = (eq.tip_position - tight.tip_position).norm(dim=-1)
+        assert bool((err < min(acc / 100, 1e-10)).all()), (acc, err)
