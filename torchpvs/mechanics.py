@@ -605,7 +605,7 @@ def elastic_grad_hess(q: torch.Tensor, maps: dict[str, torch.Tensor], energy: bo
     hh = t.hh.reshape(B, S, 1, 1, 1)
     blk[:, :, 2:, :, 2:].diagonal(dim1=2, dim2=4).addcmul_(hh * hh, t.gq.permute(0, 1, 3, 4, 2))
     upper = blk[:, :, :2, :, 2:]                                           # (B, S, 2, n, N, n)
-    torch.mul(hh[..., None], t.nq.permute(0, 1, 3, 4, 2, 5), out=upper)   # zero before
+    upper.addcmul_(hh[..., None], t.nq.permute(0, 1, 3, 4, 2, 5))         # (no out=: autograd)
     blk[:, :, 2:, :, :2] = upper.permute(0, 1, 4, 5, 2, 3)
     H[:, N:, N:].view(B, S, Cn, S, Cn).diagonal(dim1=1, dim2=3).add_(
         blk.view(B, S, Cn, Cn).permute(0, 2, 3, 1))
@@ -631,6 +631,6 @@ def section_grad_block(q: torch.Tensor, maps: dict[str, torch.Tensor], sec: torc
     blk[:, 2:, :, 2:].diagonal(dim1=1, dim2=3).addcmul_(
         hh * hh, t.gq[rows, sec].permute(0, 2, 3, 1))
     upper = blk[:, :2, :, 2:]                                              # (B, 2, n, N, n)
-    torch.mul(hh[..., None], t.nq[rows, sec].permute(0, 2, 3, 1, 4), out=upper)
+    upper.addcmul_(hh[..., None], t.nq[rows, sec].permute(0, 2, 3, 1, 4))
     blk[:, 2:, :, :2] = upper.permute(0, 3, 4, 1, 2)
     return t.grad, blk.reshape(B, C * n, C * n)
