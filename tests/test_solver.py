@@ -481,3 +481,33 @@ def test_newton_tolerance_follows_the_accuracy():
         # the residual's effect on the tip: far inside the accuracy (and below 1e-10 m here)
         err = (eq.tip_position - tight.tip_position).norm(dim=-1)
         assert bool((err < min(acc / 100, 1e-10)).all()), (acc, err)
+
+
+def test_energy_output_is_the_energy_at_the_returned_coordinates():
+    """``Equilibrium.energy`` comes from the kernel's last evaluation where it made one (no tip
+    load, method "minimize") and is recomputed otherwise; either way it is, bit for bit, the
+    elastic energy evaluated afresh at the returned coordinates (mechanics.elastic_energy_maps
+    on the same layout). Cold, warm (one iteration) and "root" solves."""
+    from torchpvs.mechanics import compact_q, elastic_energy_maps
+    from torchpvs.plan import plan_for
+
+    sc = tp.load_scene("renda2021_fig3")
+    # (rotations in (-pi, pi): the layout below is built from them as given)
+    rot = torch.tensor([[0.0, a] for a in (0.3, 1.7, 3.0, -2.0)], dtype=torch.float64)
+    fixed = dict(order=2, n_magnus=8, compute_forces=False)
+    cold = tp.solve(sc, rotation=rot, options=tp.SolverOptions(**fixed))
+    warm = tp.solve(sc, rotation=rot + 0.01, initial=cold, options=tp.SolverOptions(**fixed))
+    root = tp.solve(sc, rotation=rot, initial=cold,
+                    options=tp.SolverOptions(method="root", **fixed))
+    plan = plan_for(sc, torch.float64, torch.device("cpu"))
+    disc = tp.SolverOptions(**fixed).discretization(2)
+    for eq, r in ((cold, rot), (warm, rot + 0.01), (root, rot)):
+        assert bool(eq.converged.all())
+        B = r.shape[0]
+        D = torch.tensor(sc.actuation.insertion, dtype=torch.float64).expand(B, 2)
+        zero = torch.zeros(B, 3, dtype=torch.float64)
+        with torch.inference_mode():
+            _, maps = plan.layout(plan.tubes, D, r, zero, zero,
+                                  torch.zeros(B, dtype=torch.bool), disc, eq.q.shape[-1])
+            fresh = elastic_energy_maps(compact_q(eq.q, maps["cidx"]), maps)
+        assert torch.equal(eq.energy, fresh), (eq.energy - fresh)

@@ -56,6 +56,10 @@ class NewtonResult(NamedTuple):
     # factorization): 1 the Jacobi-scaled Hessian exceeds stability_threshold on the active
     # coordinates, 0 it does not, -1 no verdict (the caller tests)
     verdict: torch.Tensor | None = None
+    # (B,) [J] the elastic energy at q where the kernel evaluated it there (bit for bit
+    # mechanics.elastic_energy_maps; NaN where it did not: a tip load, method "root", an
+    # element moved off a saddle); None when the kernel reports none
+    energy: torch.Tensor | None = None
 
 
 class Problem(NamedTuple):
@@ -269,6 +273,7 @@ def _newton(q: torch.Tensor, prob: Problem, L_char: torch.Tensor, *, method: str
     # Hessian and gradient rows are stored only when elements leave the working batch (and at
     # the end): an (nq x nq) copy per element per iteration is a full pass over memory.
     H_out = g_out = None
+    U_out = torch.full((B,), float("nan"), dtype=dtype, device=device)
     residual = torch.full((B,), float("inf"), dtype=dtype, device=device)
     iterations = torch.zeros(B, dtype=torch.long, device=device)
     converged = torch.zeros(B, dtype=torch.bool, device=device)
@@ -305,6 +310,8 @@ def _newton(q: torch.Tensor, prob: Problem, L_char: torch.Tensor, *, method: str
         todo = ~conv & torch.isfinite(q).all(-1)
         n_todo = int(todo.sum())
         if n_todo == 0:
+            if U is not None:
+                U_out[idx] = U
             break
         if n_todo <= 0.75 * idx.shape[0]:
             # Converged (or non-finite) elements leave the working batch.
@@ -313,6 +320,8 @@ def _newton(q: torch.Tensor, prob: Problem, L_char: torch.Tensor, *, method: str
                 g_out = torch.empty(B, nq, dtype=dtype, device=device)
             out = (~todo).nonzero().flatten()
             H_out[idx[out]], g_out[idx[out]] = H[out], g[out]
+            if U is not None:
+                U_out[idx[out]] = U[out]
             keep = todo.nonzero().flatten()
             idx, q, g, H, scale, lam, tested, Lc = (t[keep] for t in
                                                     (idx, q, g, H, scale, lam, tested, Lc))
@@ -357,7 +366,7 @@ def _newton(q: torch.Tensor, prob: Problem, L_char: torch.Tensor, *, method: str
         H_out, g_out = H, g
     else:
         H_out[idx], g_out[idx] = H, g
-    return NewtonResult(q_out, H_out, g_out, converged, residual, iterations, verdict)
+    return NewtonResult(q_out, H_out, g_out, converged, residual, iterations, verdict, U_out)
 
 
 def _saddle_test(q, H, g, scale, new, prob: Problem, L_char, act):

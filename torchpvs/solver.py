@@ -778,7 +778,8 @@ def _solve_order(scene, tubes, D, A, F, M, order, n_magnus, opts, q_init, plan: 
                                max_iter=opts.max_iter)
     res = {"q": out.q, "lay": lay, "tab": tab, "disc": disc, "order": order, "Hc": out.H,
            "g": out.g, "converged": out.converged, "verdict": out.verdict,
-           "residual": out.residual, "iterations": out.iterations, "D": D, "alpha": A, "F": F,
+           "residual": out.residual, "iterations": out.iterations, "energy": out.energy,
+           "D": D, "alpha": A, "F": F,
            "M": M, "loaded": loaded, "with_load": with_load, "has_moment": has_moment,
            "maps": maps}
     if pose:
