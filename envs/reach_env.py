@@ -100,6 +100,11 @@ class CTRReachEnv(gym.Env):
         r = her_reward(self.task, achieved_goal, desired_goal, info)
         return r if r.ndim else float(r)
 
+    def relabel_observation(self, observation, achieved_goal, desired_goal) -> np.ndarray:
+        """The observation with its goal-relative entries recomputed for ``desired_goal``
+        (vectorized; see :meth:`envs.task.ReachBatch.relabel_observation`)."""
+        return self.task.relabel_observation(observation, achieved_goal, desired_goal)
+
     def state(self) -> RobotState:
         """The robot's state (:class:`~envs.task.RobotState`, copies) with the batch axis
         kept: ``x`` is ``(1, 2N)``, ``tip`` ``(1, 3)``, ``margin`` ``(1,)``, so controllers

@@ -247,8 +247,11 @@ class ReachBatch:
         self.snap_flag = np.zeros(batch_size)   # 1 after a penalized snap (achieved_goal[3])
         self.rngs = [np.random.default_rng(s) for s in np.random.SeedSequence().spawn(batch_size)]
         N = self.N
-        self.obs_size = 2 * N + N + 2 * N + 2 * N + (2 * N if carriage.kind == "second_order"
-                                                     else 0) + 3 + 3 + 3 + 1 + 2 * N
+        # where (goal - tip) / reach starts: after the actuation, forces, action, velocity and
+        # tip entries (the two goal-relative entries, 6 values, follow; relabel_observation)
+        self.goal_entries = 2 * N + N + 2 * N + 2 * N + (
+            2 * N if carriage.kind == "second_order" else 0) + 3
+        self.obs_size = self.goal_entries + 3 + 3 + 1 + 2 * N
         # goals: the tip within 2 x reach of the orifice, then the snap flag in [0, 1]
         goal_low = np.array([-2 * robot.reach] * 3 + [0.0], np.float32)
         goal_high = np.array([2 * robot.reach] * 3 + [1.0], np.float32)
@@ -446,6 +449,29 @@ class ReachBatch:
                                                 -1).astype(np.float32),
                 "desired_goal": np.concatenate([self.goal, np.zeros((self.B, 1))],
                                                -1).astype(np.float32)}
+
+    def relabel_observation(self, observation, achieved_goal, desired_goal) -> np.ndarray:
+        """``observation (..., obs_size)`` with its goal-relative entries, ``(goal - tip) /
+        reach`` and ``tanh((goal - tip) / error_scale)``, recomputed from the goals' positions
+        (``(..., 4)`` or ``(..., 3)`` [m]): what the observation would read had the episode's
+        goal been ``desired_goal``. HER relabels ``desired_goal`` only
+        (:class:`envs.her.GoalConsistentHerReplayBuffer` calls this so that the rest of the
+        observation follows). Returns a new float32 array; the other entries are copied."""
+        obs = np.array(observation, dtype=np.float32, copy=True)
+        if obs.shape[-1] != self.obs_size:
+            raise ValueError(f"observation must have {self.obs_size} entries on its last axis, "
+                             f"got shape {obs.shape}")
+        ag = np.asarray(achieved_goal, np.float64)[..., :3]
+        dg = np.asarray(desired_goal, np.float64)[..., :3]
+        if ag.shape != obs.shape[:-1] + (3,) or dg.shape != ag.shape:
+            raise ValueError(f"achieved_goal and desired_goal must be (..., 3) or (..., 4) with "
+                             f"the observation's leading shape {obs.shape[:-1]}, got "
+                             f"{np.shape(achieved_goal)} and {np.shape(desired_goal)}")
+        err = dg - ag
+        k = self.goal_entries
+        obs[..., k:k + 3] = np.clip(err / self.robot.reach, -OBS_BOUND, OBS_BOUND)
+        obs[..., k + 3:k + 6] = np.tanh(err / self.config.error_scale)
+        return obs
 
     def state(self) -> RobotState:
         """The robots' state as a :class:`RobotState` of copies (``(B, ...)`` arrays)."""

@@ -136,6 +136,9 @@ class _RobotProxy:
     def set_tolerance(self, tolerance: float) -> None:
         self._venv.task.set_tolerance(tolerance)
 
+    def relabel_observation(self, observation, achieved_goal, desired_goal):
+        return self._venv.task.relabel_observation(observation, achieved_goal, desired_goal)
+
     def __getattr__(self, name: str):
         v = self._venv
         if name == "tolerance":

@@ -123,6 +123,11 @@ class CTRReachVectorEnv(gym.vector.VectorEnv):
         """HER-style reward of the task (vectorized over leading dims; as the single env)."""
         return her_reward(self.task, achieved_goal, desired_goal, info)
 
+    def relabel_observation(self, observation, achieved_goal, desired_goal) -> np.ndarray:
+        """The observation with its goal-relative entries recomputed for ``desired_goal``
+        (vectorized; see :meth:`envs.task.ReachBatch.relabel_observation`)."""
+        return self.task.relabel_observation(observation, achieved_goal, desired_goal)
+
     def render(self):
         if self.render_mode != "rgb_array":
             return None

@@ -116,12 +116,14 @@ def parse_pairs(pairs: list[str] | None, flag: str) -> dict:
 
 def _eval_str(value, name: str):
     """The zoo writes ``policy_kwargs`` etc. as Python strings: evaluate them with only
-    ``dict`` and ``torch.nn`` in scope."""
+    ``dict``, ``torch.nn`` and ``importlib`` in scope (the zoo names classes of other packages
+    as ``importlib.import_module('envs.her').GoalConsistentHerReplayBuffer``)."""
     if not isinstance(value, str):
         return value
     import torch.nn as nn
     try:
-        return eval(value, {"__builtins__": {}}, {"dict": dict, "nn": nn})  # noqa: S307
+        return eval(value, {"__builtins__": {}},  # noqa: S307
+                    {"dict": dict, "nn": nn, "importlib": importlib})
     except Exception as e:  # noqa: BLE001 - report which entry
         raise ValueError(f"{name}: cannot evaluate {value!r}: {e}") from None
 
@@ -181,11 +183,14 @@ def make_model(algo: str, hp: dict, venv, seed: int, log_dir: Path | None):
     for name in ("policy_kwargs", "replay_buffer_kwargs"):
         if name in kw:
             kw[name] = _eval_str(kw[name], name)
+    from stable_baselines3 import HerReplayBuffer
     rb = kw.get("replay_buffer_class")
     if isinstance(rb, str):
-        from stable_baselines3 import HerReplayBuffer
-        kw["replay_buffer_class"] = HerReplayBuffer if rb == "HerReplayBuffer" else _import(rb)
-    if getattr(kw.get("replay_buffer_class"), "__name__", "") == "HerReplayBuffer":
+        kw["replay_buffer_class"] = (HerReplayBuffer if rb == "HerReplayBuffer" else
+                                     _eval_str(rb, "replay_buffer_class") if "(" in rb else
+                                     _import(rb))
+    if isinstance(kw.get("replay_buffer_class"), type) and issubclass(
+            kw["replay_buffer_class"], HerReplayBuffer):
         res = residual_spec(hp)
         if res is not None:
             from .residual import needs_plain_replay
