@@ -4,6 +4,7 @@ Pipeline: scene -> sections -> bases/quadrature -> energy -> plan + Newton kerne
 backward -> outputs (docs/index.md maps each stage to its module).
 """
 
+from .calibration import Calibration, calibrate
 from .continuation import ActuationPath, Continuation, FoldEvent, continuation
 from .equilibrium import Equilibrium
 from .force_control import ForceControlled, solve_force_controlled
@@ -20,5 +21,6 @@ __all__ = [
     "NearSingularStiffnessWarning",
     "continuation", "ActuationPath", "Continuation", "FoldEvent",
     "solve_force_controlled", "ForceControlled", "inverse_kinematics", "IKResult",
+    "calibrate", "Calibration",
 ]
 __version__ = "0.1.0"
