@@ -237,7 +237,8 @@ def _measurements(scene: Scene, insertion, rotation, tip, weights):
         if a.ndim != 2 or a.shape[1] != width:
             raise ValueError(f"{name} must have shape (M, {width}), got {a.shape}")
         if not np.isfinite(a).all():
-            raise ValueError(f"{name} must be finite (rows {sorted(set(np.argwhere(~np.isfinite(a))[:, 0].tolist()))[:5]} are not)")
+            rows = sorted({int(i) for i in np.argwhere(~np.isfinite(a))[:, 0]})
+            raise ValueError(f"{name} must be finite (rows {rows[:5]} are not)")
         arrays[name] = a
     M = arrays["tip"].shape[0]
     for name in ("insertion", "rotation"):
