@@ -15,31 +15,13 @@ import pytest
 import torch
 
 import torchpvs
-from torchpvs.reference import solve_standard
+from torchpvs.testing import feasible_actuations, scaled_tubes, standard_tips
 
 SCENE = torchpvs.load_scene("renda2021_fig3")
 
 
 def _perturbed(scene, k=(1.08, 0.93), E=(1.1, 0.92), G=(0.95, 1.07)):
-    tubes = [dataclasses.replace(t, E=t.E * E[j], G=t.G * G[j],
-                                 precurvature=tuple(tuple(c * k[j] for c in ax)
-                                                    for ax in t.precurvature))
-             for j, t in enumerate(scene.tubes)]
-    return dataclasses.replace(scene, tubes=tuple(tubes))
-
-
-def _configs(rng, m):
-    """Feasible commanded actuations of the Fig. 3 robot (outer tube short of its stroke)."""
-    D1 = rng.uniform(0.02, 0.09, m)
-    D2 = D1 + rng.uniform(0.005, 0.06, m)
-    A = rng.uniform(-np.pi, np.pi, (m, 2))
-    return np.stack([D1, D2], -1), A
-
-
-def _reference_tips(scene, D, A):
-    return np.array([solve_standard(scene.with_actuation(insertion=list(d), rotation=list(a)),
-                                    compute_forces=False, compute_stability=False).tip_position
-                     for d, a in zip(D, A, strict=True)])
+    return scaled_tubes(scene, precurvature=k, E=E, G=G)
 
 
 @pytest.fixture(scope="module")
@@ -47,12 +29,12 @@ def measured():
     rng = np.random.default_rng(0)
     truth = _perturbed(SCENE)
     offset = np.array([1e-3, 1e-3])          # both carriages' zero 1 mm off
-    D, A = _configs(rng, 36)
-    tips = _reference_tips(truth, D + offset, A)
+    D, A = feasible_actuations(rng, 36)
+    tips = standard_tips(truth, D + offset, A)
     noisy = tips + rng.normal(0.0, 1e-4, tips.shape)     # 0.1 mm per axis
     noisy[[3, 17]] += [[6e-3, -4e-3, 2e-3], [-3e-3, 5e-3, 4e-3]]   # 2 of 36 outliers (5.6 %)
-    Dh, Ah = _configs(rng, 12)
-    held = _reference_tips(truth, Dh + offset, Ah)
+    Dh, Ah = feasible_actuations(rng, 12)
+    held = standard_tips(truth, Dh + offset, Ah)
     return dict(D=D, A=A, noisy=noisy, Dh=Dh, Ah=Ah, held=held, offset=offset)
 
 
@@ -103,7 +85,7 @@ def test_exact_data_of_the_model_itself_are_fitted_exactly():
     offset: Gauss-Newton with the implicit-function Jacobian recovers them to 1e-6 relative
     (a wrong Jacobian stalls far from it)."""
     rng = np.random.default_rng(3)
-    D, A = _configs(rng, 12)
+    D, A = feasible_actuations(rng, 12)
     t0, t1 = SCENE.tubes
     truth = dataclasses.replace(SCENE, tubes=(
         dataclasses.replace(t0, straight_length=t0.straight_length + 2e-3),
@@ -128,7 +110,7 @@ def test_exact_data_of_the_model_itself_are_fitted_exactly():
 def test_jacobian_matches_finite_differences():
     from torchpvs.calibration import _Model, _parse
     rng = np.random.default_rng(1)
-    D, A = _configs(rng, 4)
+    D, A = feasible_actuations(rng, 4)
     PARAMS = ("precurvature[1]", "E[0]", "G[1]", "straight_length[1]", "curved_length[0]",
               "insertion_offset[0]", "rotation_offset[1]")
     specs = _parse(PARAMS, 2)
@@ -153,7 +135,7 @@ def test_jacobian_matches_finite_differences():
 
 def test_least_squares_is_dragged_by_an_outlier_and_huber_is_not():
     rng = np.random.default_rng(5)
-    D, A = _configs(rng, 20)
+    D, A = feasible_actuations(rng, 20)
     truth = _perturbed(SCENE, E=(1.0, 1.0), G=(1.0, 1.0))     # precurvatures 1.08, 0.93
     tips = torchpvs.solve(truth, insertion=torch.tensor(D),
                           rotation=torch.tensor(A)).tip_position.numpy()

@@ -216,3 +216,63 @@ def scene_strategy(max_tubes: int = 3):
         return out
 
     return scene_dicts()
+
+
+# -- calibration data: a robot that differs from its datasheet, measured by the reference ----
+
+def scaled_tubes(scene: Scene, precurvature=None, E=None, G=None) -> Scene:
+    """``scene`` with each tube's precurvature polynomial, ``E`` and ``G`` multiplied by the
+    given per-tube factors (``(N,)`` each; ``None`` keeps them): a robot whose tubes differ
+    from their datasheet."""
+    N = scene.n_tubes
+    fk, fE, fG = (np.ones(N) if f is None else np.asarray(f, np.float64)
+                  for f in (precurvature, E, G))
+    tubes = tuple(Tube(E=t.E * fE[j], G=t.G * fG[j], inner_diameter=t.inner_diameter,
+                       outer_diameter=t.outer_diameter, straight_length=t.straight_length,
+                       curved_length=t.curved_length, name=t.name,
+                       precurvature=tuple(tuple(c * fk[j] for c in ax) for ax in t.precurvature))
+                  for j, t in enumerate(scene.tubes))
+    return Scene(tubes=tubes, actuation=scene.actuation, load=scene.load)
+
+
+def feasible_actuations(rng: np.random.Generator, m: int, scene: Scene | None = None,
+                        margin: float = 5e-3, max_relative_rotation: float = 2.0
+                        ) -> tuple[np.ndarray, np.ndarray]:
+    """``m`` seeded commanded actuations ``(D (m, N), alpha (m, N))`` of a nested robot: every
+    insertion at least ``margin`` inside its tube and behind the next inner one, each tube
+    exposing at least ``margin`` more than the one around it (default: the Fig. 3 robot).
+    Rotations: the outer tube's uniform, the others within ``max_relative_rotation`` [rad] of
+    it (default 2 rad = 115 deg), away from +-180 deg where long overlaps are bistable and a
+    measurement's equilibrium would depend on the path that reached it."""
+    scene = scene or torchpvs.load_scene("renda2021_fig3")
+    L = np.array([t.length for t in scene.tubes])
+    N = len(L)
+    D = np.zeros((m, N))
+    for i in range(m):
+        lo = 0.0
+        for j in range(N):
+            # tip order: L_j - D_j >= L_{j-1} - D_{j-1} + margin, and D_j >= D_{j-1}
+            hi = L[j] - margin if j == 0 else min(L[j] - margin,
+                                                  L[j] - (L[j - 1] - D[i, j - 1]) - margin)
+            lo_j = max(lo, 0.1 * L[j] if j == 0 else D[i, j - 1] + margin)
+            D[i, j] = rng.uniform(lo_j, max(lo_j, hi))
+            lo = D[i, j]
+    a0 = rng.uniform(-math.pi, math.pi, (m, 1))
+    rel = rng.uniform(-max_relative_rotation, max_relative_rotation, (m, N))
+    rel[:, 0] = 0.0
+    return D, a0 + rel
+
+
+def standard_tips(scene: Scene, insertion, rotation, tol: float = 1e-10) -> np.ndarray:
+    """Tips ``(M, 3)`` [m] of the standard (Kirchhoff-rod) model, solved by shooting
+    (:mod:`torchpvs.reference`), at actuations ``(M, N)``: measurements from a model that shares
+    nothing with the PVS solver but the scene. Raises if one does not converge."""
+    out = []
+    for d, a in zip(np.asarray(insertion), np.asarray(rotation), strict=True):
+        sol = solve_standard(scene.with_actuation(insertion=list(map(float, d)),
+                                                  rotation=list(map(float, a))),
+                             tol=tol, compute_forces=False, compute_stability=False)
+        if not sol.converged:
+            raise RuntimeError(f"reference did not converge at D={d}, alpha={a}: {sol.reason}")
+        out.append(sol.tip_position)
+    return np.array(out)
