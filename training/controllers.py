@@ -18,7 +18,8 @@ import torch
 import torchpvs
 from envs.robots import ENV_SOLVER_OPTIONS, solve_batch
 
-__all__ = ["read_state", "env_robot", "env_config", "PlanThenServoController",
+__all__ = ["read_state", "env_robot", "env_config", "controller_model",
+           "PlanThenServoController", "PlanThenServoFeedbackController",
            "OperationalSpaceController", "ZeroPolicy", "RandomPolicy", "tip_jacobian",
            "safe_rotation_target", "rotation_crossings", "CONTROLLERS"]
 
@@ -66,6 +67,29 @@ def env_robot(venv):
     first sub-env)."""
     robot = getattr(venv, "robot", None)
     return robot if robot is not None else venv.get_attr("robot", indices=[0])[0]
+
+
+def controller_model(venv, model=None):
+    """The :class:`envs.robots.Robot` a model-based controller plans with: ``model`` (a Robot,
+    or a Scene given the env robot's strokes and scales), default the env's robot."""
+    import dataclasses
+
+    from envs.robots import Robot
+    from torchpvs import Scene
+
+    robot = env_robot(venv)
+    if model is None:
+        return robot
+    if isinstance(model, Robot):
+        out = model
+    elif isinstance(model, Scene):
+        out = dataclasses.replace(robot, scene=model)
+    else:
+        raise TypeError(f"model must be an envs.robots.Robot or a torchpvs.Scene, got "
+                        f"{type(model).__name__}")
+    if out.n_tubes != robot.n_tubes:
+        raise ValueError(f"model has {out.n_tubes} tubes, the env's robot {robot.n_tubes}")
+    return out
 
 
 def env_config(venv):
@@ -247,6 +271,10 @@ class PlanThenServoController:
             of the candidates), else at the unloaded full-scale speeds ``scale / b`` (0.964 ->
             0.968 on the 500 selection goals at ``T = h``).
         seed: seed of the table and of the IK's random starts.
+        model: the robot the controller believes it drives (an :class:`envs.robots.Robot`,
+            or a :class:`torchpvs.Scene` with the env robot's strokes and scales); default the
+            env's robot. Plans, the load ``g(x*)`` and Jacobians come from it; a model that
+            differs from the plant shows what model error does to a controller.
     """
 
     def __init__(self, venv, time_constant: float | None = None,
@@ -254,7 +282,7 @@ class PlanThenServoController:
                  neighbours: int = 2, rounds: int = 3, table_size: int | None = None,
                  rotation_margin: float = math.radians(20.0), starts: int = 2,
                  ik_tol: float = 1e-4, max_iter: int = 40, load_aware: bool = True,
-                 seed: int = 0):
+                 seed: int = 0, model=None):
         if time_constant is not None and not (isinstance(time_constant, (int, float))
                                               and time_constant > 0):
             raise ValueError(f"time_constant must be None or a positive time [s], got "
@@ -270,8 +298,8 @@ class PlanThenServoController:
         self.venv, self.path_speed = venv, path_speed
         self.time_constant = (float(time_constant) if time_constant is not None
                               else float(read_state(venv).control_period))
-        self.robot = env_robot(venv)
-        self.compensated = _force_env(venv, "PlanThenServoController")
+        self.robot = controller_model(venv, model)
+        self.compensated = _force_env(venv, type(self).__name__)
         self.neighbours, self.rounds, self.seed = neighbours, rounds, seed
         self.load_aware = bool(load_aware)
         self.rotation_margin = float(rotation_margin)
@@ -403,6 +431,114 @@ class PlanThenServoController:
         return _action(tau, st, self.compensated)
 
 
+class PlanThenServoFeedbackController(PlanThenServoController):
+    """Plan-then-servo that corrects its plan from the measured tip: the bar for agents on a
+    robot that differs from its model.
+
+    The plan ``x*`` is made on the controller's model as in :class:`PlanThenServoController`
+    and becomes the setpoint ``s``. Two loops then close on what the robot does:
+
+    * **inner (actuator space)**: ``tau = g_model(s) + Kp (s - x + z)``, ``Kp = b / T``, with an
+      integral term ``z += ki (s - x)`` that removes the steady error a wrong model load
+      ``g_model`` leaves; it integrates only near the setpoint and while no action saturates
+      (no wind-up), and is capped at ``integral_cap`` of the action scale.
+    * **outer (task space)**: once every carriage is within ``settle`` of ``s``,
+      ``s <- Proj[s + gain J_model(s)^+ sat(goal - tip_measured)]`` with the model's tip
+      Jacobian (implicit-function theorem) and its undamped pseudo-inverse in metres and
+      radians (a damping relative to the Jacobian's scale suppresses the rotation columns,
+      ~100x smaller than the insertion ones), the error saturated at ``error_cap``, the step
+      capped at ``max_step`` and the coordinates at a stroke or nesting contact left out
+      (a step into a contact cannot be followed and moves the tip elsewhere); ``Proj`` keeps
+      strokes and tip order, and relative rotations within ``edge`` of 0 (off the +-180 deg
+      torsional snap).
+
+    Args (beside :class:`PlanThenServoController`'s): ``gain`` fraction of the tip error
+    corrected per update; ``settle`` ``(m, rad)``; ``max_step`` ``(m, rad)``; ``error_cap``
+    [m]; ``integral_gain`` ``ki`` per step; ``integral_cap`` fraction of the action scale;
+    ``edge`` [rad].
+    """
+
+    def __init__(self, venv, gain: float = 0.6, settle: tuple[float, float] = (1.5e-3, 0.06),
+                 max_step: tuple[float, float] = (1e-3, 0.05), error_cap: float = 3e-3,
+                 integral_gain: float = 0.3, integral_cap: float = 0.4,
+                 edge: float = math.radians(168.0), **kwargs):
+        super().__init__(venv, **kwargs)
+        for name, v in (("gain", gain), ("error_cap", error_cap),
+                        ("integral_cap", integral_cap), ("edge", edge)):
+            if not (isinstance(v, (int, float)) and v > 0 and math.isfinite(v)):
+                raise ValueError(f"{name} must be a positive number, got {v!r}")
+        if not (isinstance(integral_gain, (int, float)) and 0 <= integral_gain < 1):
+            raise ValueError(f"integral_gain must be in [0, 1), got {integral_gain!r}")
+        N = self.robot.n_tubes
+        self.gain, self.error_cap, self.edge = float(gain), float(error_cap), float(edge)
+        self.ki, self.integral_cap = float(integral_gain), float(integral_cap)
+        self.settle = np.repeat(np.asarray(settle, np.float64), N)
+        self.max_step = np.repeat(np.asarray(max_step, np.float64), N)
+        B = venv.num_envs
+        self.setpoint = np.zeros((B, 2 * N))
+        self.g_set = np.zeros((B, 2 * N))
+        self.z = np.zeros((B, 2 * N))
+        self.updates = np.zeros(B, dtype=int)
+
+    def plan(self, idx, st) -> None:
+        super().plan(idx, st)
+        self.setpoint[idx], self.g_set[idx] = self.target[idx], self.g_target[idx]
+        self.z[idx] = 0.0
+
+    def _correct(self, rows: np.ndarray, st) -> None:
+        """The outer loop for robots ``rows``: move their setpoints along the model's
+        pseudo-inverse of the measured tip error."""
+        robot, N = self.robot, self.robot.n_tubes
+        s = self.setpoint[rows]
+        err = st.goal[rows] - st.tip[rows]
+        norm = np.linalg.norm(err, axis=-1, keepdims=True)
+        err = err * np.minimum(1.0, self.error_cap / np.maximum(norm, 1e-15))
+        _, J = tip_jacobian(robot, s)
+        _, lower, upper = robot.project(s[:, :N], tol=1e-9)
+        ds = np.zeros_like(s)
+        for r in range(len(rows)):
+            J_r = J[r]
+            # pushing a contact: leave the coordinate out (its column would be followed only
+            # by the contact force, not by the carriage)
+            push = J_r[:, :N].T @ err[r]
+            free = np.ones(2 * N, dtype=bool)
+            free[:N] &= ~((lower[r] & (push < 0)) | (upper[r] & (push > 0)))
+            ds[r, free] = self.gain * np.linalg.pinv(J_r[:, free], rcond=1e-9) @ err[r]
+        ds *= np.minimum(1.0, 1.0 / np.max(np.abs(ds) / self.max_step, -1,
+                                           initial=1e-15))[:, None]
+        new = s + ds
+        new[:, :N], _, _ = robot.project(new[:, :N])
+        j, k = np.triu_indices(N, 1)
+        rel = new[:, N + k] - new[:, N + j]
+        off = (np.abs(_wrap(rel)) > self.edge) | (_windows(new[:, N:]) != _windows(s[:, N:]))
+        keep = off.any(-1)
+        new[keep, N:] = s[keep, N:]                   # no rotation step toward the snap
+        eq = solve_batch(robot, new)
+        g = torch.cat([eq.actuation_forces, eq.actuation_torques], -1).numpy()
+        ok = eq.converged.numpy() & eq.stable.numpy()
+        rows, new, g = rows[ok], new[ok], g[ok]
+        self.setpoint[rows], self.g_set[rows] = new, np.nan_to_num(g)
+        self.updates[rows] += 1
+
+    def __call__(self, obs) -> np.ndarray:
+        st = read_state(self.venv)
+        self.replan(st)
+        b = st.damping
+        e = self.setpoint - st.x
+        near = np.all(np.abs(e) <= self.settle, -1)
+        if near.any():
+            self._correct(np.flatnonzero(near), st)
+            e = self.setpoint - st.x
+        kp = b / self.time_constant
+        cap = self.integral_cap * st.action_scale / kp
+        tau = self.g_set + kp * (e + self.z)
+        a = _action(tau, st, self.compensated)
+        # integrate only near the setpoint and unsaturated (anti-windup)
+        grow = near & (np.abs(a) < 0.999).all(-1)
+        self.z[grow] = np.clip(self.z[grow] + self.ki * e[grow], -cap, cap)
+        return a
+
+
 class OperationalSpaceController:
     """``tau = g(x) + B J^+ (k / h) (goal - tip)``, clipped to the action range.
 
@@ -457,5 +593,6 @@ class RandomPolicy:
 
 
 #: Baselines by name (``training.evaluate --baselines``, ``residual: {base: ...}``).
-CONTROLLERS = {"pts": PlanThenServoController, "osc": OperationalSpaceController,
+CONTROLLERS = {"pts": PlanThenServoController, "pts_feedback": PlanThenServoFeedbackController,
+               "osc": OperationalSpaceController,
                "zero": ZeroPolicy, "random": RandomPolicy}

@@ -215,3 +215,50 @@ def test_reads_state_from_a_dummy_vec_env_of_single_envs():
     a_batch = PlanThenServoController(batched, table_size=TABLE)(obs)
     np.testing.assert_allclose(a_dummy, a_batch, atol=1e-6)
     assert set(CONTROLLERS) >= {"pts", "osc", "zero", "random"}
+
+
+# -- plan-then-servo with tip feedback under model error ---------------------------------------
+
+@pytest.fixture(scope="module")
+def model_error_runs():
+    """6 seeded goals of the nominal Fig. 3 robot, both controllers planning on a model whose
+    precurvatures are 5 % too high (the learning study: pts drops to 0 % within 1 mm)."""
+    from torchpvs.testing import scaled_tubes
+    from training.controllers import PlanThenServoFeedbackController
+    from training.evaluate import rollout
+    n = torch.get_num_threads()
+    torch.set_num_threads(1)
+    try:
+        venv = envs.CTRReachVecEnv(6)
+        model = scaled_tubes(venv.robot.scene, precurvature=(1.05, 1.05))
+        out = {}
+        for name, cls in (("pts", PlanThenServoController),
+                          ("pts_feedback", PlanThenServoFeedbackController)):
+            pol = cls(venv, model=model, table_size=TABLE)
+            out[name] = (rollout(pol, venv, 6, seed=12345, progress=False), pol)
+        return out
+    finally:
+        torch.set_num_threads(n)
+
+
+def test_tip_feedback_reaches_goals_a_wrong_model_misses(model_error_runs):
+    pts, _ = model_error_runs["pts"]
+    fb, pol = model_error_runs["pts_feedback"]
+    assert (pts["final_error"] <= 1e-3).sum() <= 1              # open loop: the model's error
+    assert np.median(pts["final_error"]) > 1.5e-3
+    # 4 of 6 within 1 mm (the two misses: a goal whose plan is not finished within the
+    # episode, far off for both, and one on its way in)
+    assert (fb["final_error"] <= 1e-3).sum() >= 4, fb["final_error"]
+    assert (pol.updates > 0).all()                                # the outer loop ran
+    assert not fb["snap"].any()
+
+
+def test_feedback_controller_is_a_named_baseline_and_checks_arguments():
+    from training.controllers import PlanThenServoFeedbackController
+    assert CONTROLLERS["pts_feedback"] is PlanThenServoFeedbackController
+    venv = envs.CTRReachVecEnv(1)
+    for kw, match in ((dict(gain=0.0), "gain must be"), (dict(integral_gain=1.0),
+                                                         "integral_gain must be"),
+                      (dict(model="fig3"), "model must be")):
+        with pytest.raises((ValueError, TypeError), match=match):
+            PlanThenServoFeedbackController(venv, table_size=TABLE, **kw)
