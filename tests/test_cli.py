@@ -374,6 +374,19 @@ def test_plot_writes_png(capsys, fakes, tmp_path, torch_backbone):
     assert data.startswith(PNG_MAGIC) and len(data) > 10_000
 
 
+def test_plot_says_which_folder_it_created(capsys, fakes, tmp_path):
+    """Issue 27, item 12: `plot -o` into a missing folder created it silently. It is documented
+    (--help) and said: the message names the topmost folder created; none when it existed."""
+    target = tmp_path / "new" / "deeper" / "fig.png"
+    code, out, err = run(capsys, "plot", "renda2021_fig3", "-o", str(target))
+    assert code == 0 and err == "" and target.is_file()
+    assert f"created folder {tmp_path / 'new'}" in out
+    code, out, _ = run(capsys, "plot", "renda2021_fig3", "-o", str(target))
+    assert code == 0 and "created folder" not in out
+    code, out, _ = run(capsys, "plot", "--help")
+    assert code == 0 and "missing parent folders are created" in " ".join(out.split())
+
+
 def test_plot_not_converged_exit_1(capsys, fakes, tmp_path):
     fakes["options"] = {"converged": False}
     code, out, _ = run(capsys, "plot", "renda2021_section3b", "--model", "standard",

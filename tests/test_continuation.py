@@ -124,3 +124,24 @@ def test_callable_path_and_errors(scene3b):
         tp.continuation(scene3b, {"rot": [0.0, 1.0]}, options=OPTS)
     with pytest.raises(ValueError, match="min_step"):
         tp.continuation(scene3b, FULL_TURN, options=OPTS, max_step=1e-3, min_step=1e-2)
+
+
+@pytest.mark.parametrize("order", [2, 3, 4])
+def test_steep_stretch_before_a_fold_is_not_a_fold(scene3b, order):
+    """Issue 27, item 9: at order 2 the stretch just before the section III-B fold (the tip
+    speed grows like 1 / sqrt(alpha_fold - alpha)) was reported as two extra folds, at 192.049
+    and 192.229 deg with 0.3 and 1.0 mm "jumps", besides the snap at 192.251 deg (151.5 mm).
+    Reference: the fold and hysteresis tests above (orders >= 3, one snap of tens of mm just
+    past 180 deg), and the order-3 fold angle, which order 2 must match to 0.2 deg."""
+    opts = tp.SolverOptions(order=order)
+    res = tp.continuation(scene3b, FULL_TURN, options=opts, s_span=(0.5, 0.56))
+    assert len(res.folds) == 1, [(math.degrees(2 * math.pi * f.s), f.tip_jump)
+                                 for f in res.folds]
+    f = res.folds[0]
+    assert f.tip_jump > 0.1 and f.margin_before < 0.05 * f.margin_after
+    assert abs(math.degrees(2 * math.pi * f.s) - 192.3) < 0.2
+    # one branch up to the snap, its steps within max_tip_jump (2% of 0.2 m)
+    steps = (res.tip_position[1:] - res.tip_position[:-1]).norm(dim=-1)
+    same = res.branch[1:] == res.branch[:-1]
+    assert float(steps[same].max()) <= 0.02 * 0.2
+    assert res.branch.tolist() == sorted(res.branch.tolist()) and int(res.branch[-1]) == 1

@@ -134,3 +134,36 @@ def test_bad_input_names_the_field():
         tp.solve_force_controlled(SCENE, forces=[math.inf, NAN])
     with pytest.raises(ValueError, match="insertion"):
         tp.solve_force_controlled(SCENE, forces=[NAN, 1.0], insertion=[0.1, 0.05])
+
+
+F32 = tp.SolverOptions(dtype=torch.float32)
+
+
+def test_float32_torque_control_converges_at_the_dtype_floor():
+    """Issue 27, item 5: in float32, torques=[nan, 0.01] reached 0.00999997 N·m (residual
+    3.4e-8 N·m, float32's rounding of tau) but reported converged=False, "beyond the largest
+    elastic resistance", against the float64 default torque_tol = 1e-10. The thresholds now
+    follow the dtype. Reference: the float64 solve of the same command (its alpha_2)."""
+    ref = tp.solve_force_controlled(SCENE, torques=[NAN, 0.01], options=OPTS,
+                                    on_failure="raise")
+    res = tp.solve_force_controlled(SCENE, torques=[NAN, 0.01], options=F32, on_failure="raise")
+    assert bool(res.converged[0]) and res.reason == ("converged",)
+    tol = float(res.tolerance[0, 3])
+    eps = torch.finfo(torch.float32).eps
+    assert 1e-10 < tol < 1e3 * eps * 0.01 + 1e-5          # the floor, not a free pass
+    assert abs(float(res.residual[0, 3])) <= tol
+    assert abs(float(res.rotation[0, 1]) - float(ref.rotation[0, 1])) < 1e-4      # rad
+    # float64 keeps the requested thresholds (its floor is ~1e-15 N·m)
+    assert float(ref.tolerance[0, 3]) == 1e-10 and float(ref.tolerance[0, 1]) == 1e-8
+
+
+def test_a_stall_at_the_rounding_level_is_not_called_unreachable(monkeypatch):
+    """The reason must be the true one: with the dtype floors removed, float32 stalls a few
+    1e-8 N·m from the command at a regular stiffness, which is rounding, not a command beyond
+    the elastic range (that case keeps its reason: test_torque_beyond_elastic_range_...)."""
+    monkeypatch.setattr(tp.force_control, "TORQUE_FLOOR", 0.0)
+    res = tp.solve_force_controlled(SCENE, torques=[NAN, 0.01], options=F32,
+                                    on_failure="ignore")
+    assert not bool(res.converged[0])
+    assert "rounding level of torch.float32" in res.reason[0]
+    assert "beyond the largest elastic" not in res.reason[0]

@@ -82,3 +82,21 @@ def test_double_backward_raises_clearly():
 def test_no_graph_without_requires_grad():
     eq = tp.solve(SCENE, insertion=INS, rotation=ROT, options=OPTS)
     assert eq.tip_position.grad_fn is None
+
+
+def test_non_finite_stiffness_warns_instead_of_raising():
+    """Issue 27, item 2: an element whose stiffness is not finite (a solve that overflowed, as
+    float32 inverse kinematics produced) made the singularity check's eigh raise LinAlgError
+    and lost every element's gradient. Now it is named in a warning, its gradient is NaN and
+    the other elements' gradients equal a solve without it (reference: that solve)."""
+    rot = ROT.clone().requires_grad_(True)
+    eq = tp.solve(SCENE, insertion=INS, rotation=rot, options=OPTS)
+    eq._ctx["implicit_info"]["Hc"][0] = float("nan")    # element 0: no usable stiffness
+    with pytest.warns(tp.NearSingularStiffnessWarning, match=r"not finite at 1 element\(s\) \[0\]"):
+        (g,) = torch.autograd.grad(eq.tip_position[:, 0].sum(), rot)
+    assert bool(torch.isnan(g[0]).all())
+    rot1 = ROT[1:].clone().requires_grad_(True)
+    (g1,) = torch.autograd.grad(
+        tp.solve(SCENE, insertion=INS[1:], rotation=rot1, options=OPTS).tip_position[:, 0].sum(),
+        rot1)
+    assert torch.allclose(g[1], g1[0], rtol=1e-10, atol=1e-14)

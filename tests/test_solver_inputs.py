@@ -214,3 +214,46 @@ def test_chunked_batches_equal_the_whole_batch(monkeypatch):
     assert float((whole.actuation_forces - parts.actuation_forces).abs().max()) < 1e-9
     assert torch.equal(whole.stable, parts.stable) and torch.equal(whole.converged,
                                                                    parts.converged)
+
+
+def test_no_stability_verdict_without_an_equilibrium():
+    """Issue 27, item 12: a CTR with precurvature 1e6 1/m does not converge (61 iterations,
+    residual 0.12) and was reported stable=True. A state that is not an equilibrium gets no
+    verdict: stable is False and the contract's "stable" is null (as the standard reference
+    does for a failed solve, tests/test_reference.py)."""
+    robot = tp.CTR(SC, tp.SolverOptions(on_failure="ignore"))
+    with torch.no_grad():
+        robot.precurvature[:] = 1e6
+    eq = robot(torch.tensor(SC.actuation.insertion), torch.tensor(SC.actuation.rotation))
+    assert not bool(eq.converged[0])
+    assert not bool(eq.stable[0])
+    c = eq.as_contract()
+    assert c["converged"] is False and c["stable"] is None
+    # a converged solve keeps its verdict in both
+    ok = tp.solve(SC)
+    assert bool(ok.converged[0]) and bool(ok.stable[0]) and ok.as_contract()["stable"] is True
+
+
+def test_time_limit_bounds_a_hard_solve_and_says_so():
+    """Issue 27, item 10 (the solve part): a 10 N·m tip moment on the Fig. 3 robot fails after
+    61 iterations (about 10 s on one thread, 100 s with default threads on a loaded machine).
+    SolverOptions.time_limit bounds the Newton iterations; the answer is reported unconverged
+    with the reason, not NaN, and the call returns soon after the limit (the remaining work is
+    one iteration plus the outputs)."""
+    import time
+    tp.solve(SC, options=tp.SolverOptions(order=2))               # warm: first-call setup
+    opts = tp.SolverOptions(on_failure="ignore", time_limit=0.3, compute_forces=False)
+    t0 = time.perf_counter()
+    eq = tp.solve(SC, tip_moment=[0.0, 10.0, 0.0], options=opts)
+    elapsed = time.perf_counter() - t0
+    assert not bool(eq.converged[0]) and "time limit time_limit=0.3 s reached" in eq.reason[0]
+    assert math.isfinite(float(eq.residual_norm[0])) and bool(torch.isfinite(eq.q).all())
+    assert elapsed < 0.3 + 2.0, elapsed
+    # an easy solve is untouched by the default bound (30 s)
+    assert tp.SolverOptions().time_limit == 30.0 and bool(tp.solve(SC).converged[0])
+
+
+@pytest.mark.parametrize("value", [0.0, -1.0, math.inf, math.nan, "10", True])
+def test_time_limit_must_be_positive_seconds(value):
+    with pytest.raises(ValueError, match="options.time_limit must be a positive number"):
+        tp.SolverOptions(time_limit=value)

@@ -83,7 +83,8 @@ def _build_parser() -> _Parser:
     p = sub.add_parser("plot", help="solve and save a 3D plot of the backbone",
                        description="Solve and save a 3D backbone plot (format from the suffix).")
     scene_args(p)
-    p.add_argument("-o", "--output", required=True, metavar="FILE", help="image file, e.g. fig.png")
+    p.add_argument("-o", "--output", required=True, metavar="FILE",
+                   help="image file, e.g. fig.png (missing parent folders are created)")
     p.add_argument("--points", type=_points, default=200, metavar="K",
                    help="backbone points (default 200)")
 
@@ -338,6 +339,10 @@ def _cmd_plot(args: argparse.Namespace) -> int:
     sol = _solve(scene, args.model, prog)
     contract = _contract(sol)
     points = _backbone(sol, args.points)
+    # save_backbone_plot creates missing parent folders (documented in --help); say so, so
+    # that a mistyped path does not go unnoticed (issue 27, item 12).
+    created = next((p for p in reversed(Path(args.output).absolute().parents)
+                    if not p.exists()), None)
     try:
         path = save_backbone_plot(scene, points, args.output,
                                   title=f"{args.scene} ({args.model} model)")
@@ -345,8 +350,9 @@ def _cmd_plot(args: argparse.Namespace) -> int:
         raise CLIError(f"cannot save {args.output!r}: {_one_line(exc)}") from None
     tip = points[-1] * 1e3
     state = "converged" if contract.get("converged") is True else "NOT converged"
+    made = f"; created folder {created}" if created is not None else ""
     print(f"saved {path} ({args.model} model, {state}, tip "
-          f"[{tip[0]:.3f}, {tip[1]:.3f}, {tip[2]:.3f}] mm)")
+          f"[{tip[0]:.3f}, {tip[1]:.3f}, {tip[2]:.3f}] mm{made})")
     return 0 if contract.get("converged") is True else 1
 
 

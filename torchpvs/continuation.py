@@ -14,7 +14,10 @@ A fold is detected two ways:
   ``Equilibrium.min_stiffness_eigenvalue``) changes sign along the followed branch (seen with
   ``method="root"``, which follows unstable branches too).
 
-Either way the fold is then located by bisection on ``s`` to within ``fold_tol``, and the snap is
+Either way the fold is then located by bisection on ``s`` to within ``fold_tol``. A branch jump
+whose final bracket shows no jump (the tip moves at most ``max_tip_jump`` from the last point of
+the branch) was a steep stretch before a fold, where the tip speed grows like
+``1 / sqrt(s_fold - s)``, not a fold: the continuation goes on from there. Otherwise the snap is
 reported: the robot is re-solved with ``method="minimize"`` just past the fold, from the last
 equilibrium of the lost branch, and the tip jump to the stable branch it lands on is recorded.
 The continuation then goes on from that branch.
@@ -322,6 +325,20 @@ def continuation(scene: Scene | str, path: Any, *, options: SolverOptions | None
         if not bool(after.converged[0]):
             raise RuntimeError(f"continuation: the snap at s = {hi:.6g} found no converged "
                                f"equilibrium: {after.reason[0]}")
+        if kind == "branch_jump" and bool(after.stable[0]) and float(
+                (after.tip_position[0] - eq_lo.tip_position[0]).norm()) <= max_tip_jump:
+            # The bracket closed without a jump: the same test from the last point of the
+            # branch passes, so s_hi was judged from a point farther back and the branch goes
+            # on. Close to a fold the tip speed grows like 1 / sqrt(s_fold - s), so a stretch
+            # can exceed max_tip_jump per step without ending: no snap here (order 2 on the
+            # section III-B robot reported such stretches 0.2 deg before its fold as folds
+            # with 0.3 mm and 1.0 mm "jumps"; issue 27, item 9).
+            if bar is not None:
+                bar.update(abs(hi - s))
+            s, cur = hi, after
+            record(s, cur)
+            h = min_step
+            continue
         branch += 1
         record(hi, after)
         D_f, A_f = pth(0.5 * (lo + hi), scene)

@@ -31,7 +31,9 @@ def _failure_reason(res, opts, b: int) -> str:
     if ramp is not None and not math.isnan(float(ramp[b])):
         text += (f"; the load ramp ({opts.load_steps} steps) reached {float(ramp[b]):.0%} of "
                  f"the tip load")
-    if res.get("work_exhausted"):
+    if res.get("timed_out"):
+        text += f"; time limit time_limit={opts.time_limit:g} s reached"
+    elif res.get("work_exhausted"):
         text += f"; work limit max_total_iter={opts.max_total_iter} reached"
     return text + "; try method='minimize', more max_iter, or a different initial guess"
 
@@ -78,7 +80,8 @@ class Equilibrium:
         residual_norm: ``(B,)`` scaled residual (see ``SolverOptions.tol``).
         iterations: ``(B,)`` Newton iterations (at the final order).
         stable: ``(B,)`` bool, the Hessian over the active coordinates is positive definite
-            (decided on its nondimensional form, see ``min_stiffness_eigenvalue``).
+            (decided on its nondimensional form, see ``min_stiffness_eigenvalue``). False where
+            the solve did not converge (no equilibrium to judge; ``as_contract`` gives null).
         min_stiffness_eigenvalue: ``(B,)`` smallest eigenvalue of the Jacobi-scaled
             (dimensionless) Hessian; computed on first access.
         dofs: ``(B,)`` number of active generalized coordinates.
@@ -198,6 +201,9 @@ class Equilibrium:
             forces, torques, insert_side, kink = equilibrium_forces(tubes, res, resolve,
                                                                     cache=cache)
         conv = res["converged"]
+        # A verdict needs an equilibrium: where the solve did not converge, the state is not
+        # one, and its Hessian's sign says nothing about stability (a precurvature of 1e6 1/m
+        # reported converged=False, stable=True; issue 27, item 12).
         conv_list = conv.tolist()
         reason = tuple("converged" if conv_list[b] else _failure_reason(res, opts, b)
                        for b in range(B))
@@ -219,7 +225,7 @@ class Equilibrium:
                    relative_rotation_at_outer_tip=rel, energy=energy, actuation_forces=forces,
                    actuation_torques=torques, actuation_forces_insertion=insert_side,
                    force_kink=kink, converged=conv, residual_norm=res["residual"],
-                   iterations=res["iterations"], stable=stable,
+                   iterations=res["iterations"], stable=stable & conv,
                    dofs=dofs, order=res["order"], error_estimate=err,
                    accuracy_met=err <= opts.accuracy, solve_time_s=elapsed,
                    reason=reason, _ctx=ctx)
@@ -249,7 +255,7 @@ class Equilibrium:
             centers = (torch.arange(m, dtype=q.dtype, device=q.device) + 0.5) / m
             off = (0.5 / m) / 3.0**0.5
             loc = torch.stack([centers - off, centers + off], -1).reshape(-1)   # (2m,) in [0,1]
-            hs = h.clamp(min=1e-300)
+            hs = h.clamp(min=torch.finfo(h.dtype).tiny)       # (1e-300 is 0 in float32)
             xi = -1.0 + 2.0 * (x[..., None] * loc) / hs[..., None]             # (B, K, 2m)
             xi_all = xi.reshape(B, 1, -1).expand(B, lay.h.shape[-1], -1)   # (B, S, K*2m)
             from .basis import legendre_basis
@@ -300,7 +306,7 @@ class Equilibrium:
             "error_estimate": flt(self.error_estimate[b]),
             "accuracy_met": bool(self.accuracy_met[b]),
             "energy": flt(self.energy[b]),
-            "stable": bool(self.stable[b]),
+            "stable": bool(self.stable[b]) if bool(self.converged[b]) else None,
             "min_stiffness_eigenvalue": flt(self.min_stiffness_eigenvalue[b]),
             "residual_norm": flt(self.residual_norm[b]),
             "iterations": int(self.iterations[b]),

@@ -72,6 +72,8 @@ class ForceControlled:
             force-controlled.
         residual: ``(B, 2N)`` ``tau - commanded`` [N, N·m] on commanded coordinates, 0 elsewhere.
         converged: ``(B,)`` bool; ``reason``: per element, ``"converged"`` or why not.
+        tolerance: ``(B, 2N)`` the convergence thresholds used on ``residual`` [N, N·m]:
+            ``force_tol``/``torque_tol`` or the dtype's floor where that is larger.
         iterations: ``(B,)`` accepted + rejected Newton trials (one equilibrium solve each).
         actuator_stiffness: ``(B, 2N, 2N)`` ``dtau/dx`` at the solution [N/m, N, N·m/rad].
         stiffness_margin: ``(B,)`` [N·m] smallest eigenvalue of the symmetric part of the scaled
@@ -97,6 +99,7 @@ class ForceControlled:
     stiffness_margin: torch.Tensor
     stable: torch.Tensor
     zero_modes: torch.Tensor
+    tolerance: torch.Tensor
 
     def __len__(self) -> int:
         return self.insertion.shape[0]
@@ -115,6 +118,29 @@ def _commands(x, N: int, name: str, dtype, device) -> torch.Tensor:
     if bool(torch.isinf(t).any()):
         raise ValueError(f"{name} must be finite or NaN (NaN = position-controlled), got inf")
     return t
+
+
+# Convergence floors (in units of eps x the energy scale, see solve_force_controlled): about 3x
+# and 2x the largest float32 rounding of tau measured on the Fig. 3 robot.
+TORQUE_FLOOR = 8.0
+FORCE_FLOOR = 64.0
+
+
+def _energy_scale(scene: Scene, F: torch.Tensor, M: torch.Tensor, cmd: torch.Tensor,
+                  free: torch.Tensor, ell: float) -> torch.Tensor:
+    """``(B,)`` [J] the scale of the energies whose derivatives are the actuator forces: the
+    energy to straighten every tube's curved part (``EI |u*_xy|^2 + GJ u*_z^2`` times its
+    length, ``|u*|`` bounded by its coefficients), plus the work of the tip load and of the
+    commanded forces and torques over the robot's length ``ell`` [m] / one radian."""
+    e = 0.0
+    for t in scene.tubes:
+        lc = t.curved_length
+        ux, uy, uz = (sum(abs(c) * lc**k for k, c in enumerate(ax)) for ax in t.precurvature)
+        e += (t.bending_stiffness * (ux**2 + uy**2) + t.torsional_stiffness * uz**2) * lc
+    N = cmd.shape[-1] // 2
+    c = (cmd * free).abs()
+    return (e + F.norm(dim=-1) * ell + M.norm(dim=-1) + c[:, :N].sum(-1) * ell
+            + c[:, N:].sum(-1))
 
 
 def _names(N: int) -> list[str]:
@@ -146,7 +172,11 @@ def solve_force_controlled(
             ``tau(x)`` is one smooth function during the iteration.
         initial: warm start (an :class:`~torchpvs.Equilibrium` or coordinates) of the first solve.
         force_tol: convergence threshold on ``|tau_Dj - commanded|`` [N].
-        torque_tol: convergence threshold on ``|tau_alphaj - commanded|`` [N·m].
+        torque_tol: convergence threshold on ``|tau_alphaj - commanded|`` [N·m]. Both are
+            raised, per element, to the floor the dtype can resolve (``64 eps E / ell`` [N] and
+            ``8 eps E`` [N·m], ``E`` the energy scale of the robot, its load and the commands:
+            about 3e-6 N·m for the Fig. 3 robot in float32, 1e-15 N·m in float64);
+            :attr:`ForceControlled.tolerance` holds the thresholds used.
         max_iter: Newton trials (each one batched equilibrium solve + ``2N`` adjoint passes).
         max_step: ``(insertion [m], rotation [rad])`` largest change of a coordinate per step.
         max_rotation_travel: [rad] a free rotation moving farther than this from its start fails
@@ -206,8 +236,18 @@ def solve_force_controlled(
     F, M = F.expand(B, 3).contiguous(), M.expand(B, 3).contiguous()
     ell = max(t.length for t in scene.tubes)
     S = torch.tensor([ell] * N + [1.0] * N, dtype=dtype, device=device)
-    tol = torch.tensor([float(force_tol)] * N + [float(torque_tol)] * N, dtype=dtype,
-                       device=device)
+    # Tolerances follow the dtype: tau = dU*/dx rounds at about eps x the scale of the energy
+    # (measured on the Fig. 3 robot in float32 against float64: torques within 2.4 eps E,
+    # forces within 31 eps E / ell, E = 0.72 J), so a threshold below that floor can never be
+    # met (float32 used to stall 3e-8 N·m from a 1e-10 target and report "unreachable";
+    # issue 27, item 5). In float64 the floors (~1e-15 N·m, ~3e-14 N) lie far below the
+    # defaults.
+    eps = torch.finfo(dtype).eps
+    E = _energy_scale(scene, F, M, cmd, free, ell)                              # (B,) [J]
+    floor = torch.cat([(FORCE_FLOOR * eps / ell) * E[:, None].expand(B, N),
+                       (TORQUE_FLOOR * eps) * E[:, None].expand(B, N)], -1)
+    tol = torch.maximum(torch.tensor([float(force_tol)] * N + [float(torque_tol)] * N,
+                                     dtype=dtype, device=device), floor)         # (B, 2N)
     L = torch.tensor([t.length for t in scene.tubes], dtype=dtype, device=device)
     names = _names(N)
 
@@ -230,7 +270,7 @@ def solve_force_controlled(
     unloaded = (F.abs().sum(-1) == 0) & (M.abs().sum(-1) == 0)
     common_free = free[:, N:].all(-1) & unloaded
     sum_t = cmd[:, N:].sum(-1)
-    bad_sum = common_free & (sum_t.abs() > N * torque_tol)
+    bad_sum = common_free & (sum_t.abs() > N * tol[:, N:].amax(-1))
     for b in bad_sum.nonzero().flatten().tolist():
         failed[b] = True
         reason[b] = (f"no equilibrium: every rotation is torque-controlled and the tip is "
@@ -251,6 +291,16 @@ def solve_force_controlled(
         return (t - cmd) * free
 
     r = residual(tau)
+
+    def precision_stall(b: int) -> bool:
+        # The least-norm Newton step from the stalled point, in scaled units (D / ell, rad):
+        # tiny where K_ff is regular and only rounding stops the decrease, large where the
+        # command lies beyond the branch's largest resistance (K_ff -> 0 at the stall).
+        fb = free[b]
+        Kb = (S[:, None] * K[b] * S[None, :])[fb][:, fb]
+        step = torch.linalg.pinv(Kb, rtol=1e-9) @ (r[b] * S)[fb]
+        return bool(step.abs().amax() <= eps ** 0.5)
+
     history: list[torch.Tensor] = []
     window = 8
     for _ in range(max_iter):
@@ -277,7 +327,8 @@ def solve_force_controlled(
         D, dD = x[:, :N], dx[:, :N]
         g = D - torch.cat([torch.zeros_like(D[:, :1]), D[:, :-1]], -1)
         dg = dD - torch.cat([torch.zeros_like(dD[:, :1]), dD[:, :-1]], -1)
-        lim = torch.where(dg < 0, g / (-dg).clamp(min=1e-300), torch.full_like(g, math.inf))
+        lim = torch.where(dg < 0, g / (-dg).clamp(min=torch.finfo(dtype).tiny),
+                          torch.full_like(g, math.inf))
         t = lim.amin(-1).clamp(max=1.0)
         block = active & (t * dx.abs().amax(-1) <= 1e-15)
         x_try = torch.where(active[:, None], x + t[:, None] * dx, x)
@@ -342,6 +393,14 @@ def solve_force_controlled(
                                  f"drive insertion D_{j + 1} against the limit {rule} "
                                  f"(docs/conventions.md) at D = {x[b, :N].tolist()} m; residual "
                                  f"{nm}: {float(r[b, k]):.6g} {unit}")
+                elif precision_stall(b):
+                    reason[b] = (f"stalled at the rounding level of {dtype}: |tau - commanded| "
+                                 f"stopped decreasing at {field} = {float(cmd[b, k]):.6g} {unit} "
+                                 f"(reached {float(tau[b, k]):.6g} {unit}, residual "
+                                 f"{float(r[b, k]):.3g} > threshold {float(tol[b, k]):.3g} "
+                                 f"{unit}) with a non-singular stiffness: the Newton step left "
+                                 f"is below what {dtype} resolves; raise force_tol/torque_tol "
+                                 f"or solve in float64")
                 else:
                     kk = float(K[b, k, k]) * (ell**2 if k < N else 1.0)
                     reason[b] = (f"no equilibrium reachable: |tau - commanded| stopped "
@@ -380,7 +439,7 @@ def solve_force_controlled(
         equilibrium=eqs, insertion=x[:, :N].clone(), rotation=x[:, N:].clone(),
         forces=tau[:, :N].clone(), torques=tau[:, N:].clone(), commanded=free, residual=r,
         converged=conv, reason=tuple(reason), iterations=iters, actuator_stiffness=K,
-        stiffness_margin=margin, stable=stable, zero_modes=zero_modes)
+        stiffness_margin=margin, stable=stable, zero_modes=zero_modes, tolerance=tol)
     bad = (~conv).nonzero().flatten().tolist()
     if bad and on_failure != "ignore":
         msg = (f"solve_force_controlled: {len(bad)} of {B} element(s) found no equilibrium "

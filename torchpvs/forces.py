@@ -234,7 +234,8 @@ def paper_actuation(tubes, res, tol: float = 1e-12):
         # stiffness-weighted average of the rotated precurvatures (the closure of the exact
         # solution; more accurate at the section ends than the bending polynomial itself).
         EIp = lay.EI[:, None, None, :] * present[:, :, None, :]
-        u = (EIp[..., None] * Ru).sum(-2) / EIp.sum(-1, keepdim=True).clamp(min=1e-300)
+        u = (EIp[..., None] * Ru).sum(-2) / EIp.sum(-1, keepdim=True).clamp(
+            min=torch.finfo(EIp.dtype).tiny)                 # (1e-300 is 0 in float32)
         S = present.shape[1]
         first = present[..., 0].float().argmax(-1)                     # first free section
         ar = torch.arange(B, device=q.device)

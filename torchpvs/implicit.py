@@ -115,7 +115,7 @@ def adjoint_factor(q_star, info, D, alpha, F, M, EI, GJ, L, Ls, coef):
     scale; warns once if the stiffness is nearly singular."""
     H = full_hessian(info)
     qmask = info["qmask"]
-    scale = H.diagonal(dim1=-2, dim2=-1).abs().clamp(min=1e-300)
+    scale = H.diagonal(dim1=-2, dim2=-1).abs().clamp(min=torch.finfo(H.dtype).tiny)
     Hs = H / torch.sqrt(scale[:, :, None] * scale[:, None, :])
     # The spectrum on the active coordinates (inactive rows are identity rows, eigenvalue 1):
     # a Cholesky of Hs - tol I proves every eigenvalue above tol (the stable case); eigvalsh
@@ -123,10 +123,19 @@ def adjoint_factor(q_star, info, D, alpha, F, M, EI, GJ, L, Ls, coef):
     Hc = compact(Hs, active_index(qmask))
     tol = info["singular_tol"]
     eye_c = torch.eye(Hc.shape[-1], dtype=H.dtype, device=H.device)
-    maybe = torch.linalg.cholesky_ex(Hc - tol * eye_c)[1] != 0
+    # A non-finite stiffness (an element whose solve overflowed: not converged) has no
+    # spectrum; LAPACK's eigh raises on it (issue 27, item 2), so it is reported on its own.
+    finite = torch.isfinite(Hc).flatten(1).all(-1)
+    maybe = (torch.linalg.cholesky_ex(Hc - tol * eye_c)[1] != 0) & finite
     near = torch.zeros_like(maybe)
     if bool(maybe.any()):
         near[maybe] = torch.linalg.eigvalsh(Hc[maybe]).abs().amin(-1) < tol
+    if not bool(finite.all()):
+        bad = (~finite).nonzero().flatten().tolist()
+        warnings.warn(
+            f"torchpvs: stiffness not finite at {len(bad)} element(s) {bad[:8]} (no equilibrium "
+            "there: see Equilibrium.converged): their implicit gradients are NaN.",
+            NearSingularStiffnessWarning, stacklevel=4)
     if bool(near.any()):
         warnings.warn(
             f"torchpvs: stiffness nearly singular at {int(near.sum())} element(s) "

@@ -17,13 +17,14 @@ from the initial actuation is returned.
 
 from __future__ import annotations
 
+import hashlib
 import math
 from dataclasses import dataclass
 
 import torch
 
 from .scene import Scene, load_scene
-from .solver import SolverOptions, solve
+from .solver import SolverOptions, check_actuation, solve
 
 __all__ = ["IKResult", "inverse_kinematics"]
 
@@ -57,12 +58,16 @@ def inverse_kinematics(scene: Scene | str, goal, *, starts: int = 8, tol: float 
             goal's azimuth, and ``starts - 2`` seeded random actuations.
         tol: [m] the tip must end this close to the goal.
         max_iter: Levenberg–Marquardt iterations (each one batched solve).
-        initial_insertion, initial_rotation: ``(N,)`` or ``(G, N)``; default the scene's.
-        min_exposed: [m] every tube keeps at least this much beyond the orifice.
+        initial_insertion, initial_rotation: ``(N,)`` or ``(G, N)``; default the scene's. The
+            insertions must obey the rules of :func:`torchpvs.solve` (``0 <= D_1 <= D_2 <=
+            ...``); one deeper than ``length - min_exposed`` starts on that bound.
+        min_exposed: [m] (>= 0) every tube keeps at least this much beyond the orifice.
         max_step: the largest insertion [m] and rotation [rad] change per iteration.
         travel_scale: [m/rad] weight of rotations against insertions, in the step's metric and
             in the travel that ranks solutions.
-        seed: seed of the random starts.
+        seed: seed of the random starts. Each goal's starts are drawn from ``seed`` and the
+            values of its own row (goal, initial actuation), so a goal gets the same answer
+            wherever it sits in the batch.
         options: solver options of the equilibria (default ``order=2, n_magnus=8``, no forces).
     """
     scene = scene if isinstance(scene, Scene) else load_scene(scene)
@@ -70,12 +75,33 @@ def inverse_kinematics(scene: Scene | str, goal, *, starts: int = 8, tol: float 
         raise ValueError(f"starts must be an integer >= 1, got {starts!r}")
     if not (isinstance(tol, (int, float)) and tol > 0 and math.isfinite(tol)):
         raise ValueError(f"tol must be a positive length [m], got {tol!r}")
+    if not (isinstance(max_iter, int) and not isinstance(max_iter, bool) and max_iter >= 0):
+        raise ValueError(f"max_iter must be an integer >= 0, got {max_iter!r}")
+    if not (isinstance(min_exposed, (int, float)) and math.isfinite(min_exposed)
+            and min_exposed >= 0):
+        # A negative value would let a tube's base pass the orifice (D_j > length_j).
+        raise ValueError(f"min_exposed must be a length >= 0 [m] (what every tube keeps beyond "
+                         f"the orifice), got {min_exposed!r}")
+    if not (isinstance(max_step, (tuple, list)) and len(max_step) == 2
+            and all(isinstance(v, (int, float)) and v > 0 and math.isfinite(v)
+                    for v in max_step)):
+        raise ValueError(f"max_step must be (insertion [m] > 0, rotation [rad] > 0), got "
+                         f"{max_step!r}")
+    if not (isinstance(travel_scale, (int, float)) and travel_scale > 0
+            and math.isfinite(travel_scale)):
+        raise ValueError(f"travel_scale must be a positive number [m/rad], got "
+                         f"{travel_scale!r}")
+    if not (isinstance(seed, int) and not isinstance(seed, bool)):
+        raise ValueError(f"seed must be an integer, got {seed!r}")
     dt = torch.float64
     goal = torch.as_tensor(goal, dtype=dt)
     goal = goal[None] if goal.ndim == 1 else goal
     if goal.ndim != 2 or goal.shape[-1] != 3 or not bool(torch.isfinite(goal).all()):
         raise ValueError(f"goal must be finite with shape (3,) or (G, 3), got "
                          f"{tuple(goal.shape)}")
+    if goal.shape[0] == 0:
+        raise ValueError("goal must hold at least one goal: shape (3,) or (G, 3) with G >= 1, "
+                         "got (0, 3)")
     G, N, K = goal.shape[0], scene.n_tubes, starts
     opts = options or SolverOptions(order=2, n_magnus=8, compute_forces=False,
                                     on_failure="ignore")
@@ -83,12 +109,25 @@ def inverse_kinematics(scene: Scene | str, goal, *, starts: int = 8, tol: float 
     if bool((D_max < 0).any()):
         raise ValueError(f"min_exposed ({min_exposed} m) exceeds a tube's length")
 
-    def rows(x, name):
+    def rows(x, name, field):
         t = torch.as_tensor(x if x is not None else getattr(scene.actuation, name), dtype=dt)
-        return (t[None] if t.ndim == 1 else t).expand(G, N)
+        t = t[None] if t.ndim == 1 else t
+        if t.ndim != 2 or t.shape[-1] != N or t.shape[0] not in (1, G):
+            raise ValueError(f"{field} must have shape ({N},) or ({G}, {N}) (one row per "
+                             f"goal), got {tuple(t.shape)}")
+        if not bool(torch.isfinite(t).all()):
+            raise ValueError(f"{field} must be finite")
+        return t.expand(G, N)
 
-    D0 = _project(rows(initial_insertion, "insertion"), D_max)
-    A0 = rows(initial_rotation, "rotation")
+    D_init = rows(initial_insertion, "insertion", "initial_insertion")
+    try:
+        check_actuation(D_init, scene)    # the rules solve() applies (docs/conventions.md)
+    except ValueError as err:
+        rule = str(err).removeprefix("insertion: ")
+        raise ValueError(f"initial_insertion: {rule}, got {D_init.tolist()}") from None
+    # Within the rules, a start deeper than length - min_exposed is moved onto that bound.
+    D0 = _project(D_init, D_max)
+    A0 = rows(initial_rotation, "rotation", "initial_rotation")
     D = D0[:, None].repeat(1, K, 1)
     A = A0[:, None].repeat(1, K, 1)
     if K > 1:
@@ -96,10 +135,12 @@ def inverse_kinematics(scene: Scene | str, goal, *, starts: int = 8, tol: float 
         turn = torch.atan2(goal[:, 1], goal[:, 0]) - torch.atan2(tip0[:, 1], tip0[:, 0])
         A[:, 1] = A0 + turn[:, None]
     if K > 2:
-        gen = torch.Generator().manual_seed(seed)
-        u = torch.rand(G, K - 2, N, generator=gen, dtype=dt)
+        # The same seeded starts for every goal: a goal's answer must not depend on where it
+        # sits in the batch (drawn per batch, goal g got rows g of a (G, K - 2, N) draw, so
+        # [A] and [A, A] returned different actuations for A; issue 27, item 3).
+        u, a = _random_starts(seed, goal, D0, A0, K - 2)
         D[:, 2:] = _project(torch.cummax(u * D_max, -1).values, D_max)
-        A[:, 2:] = (torch.rand(G, K - 2, N, generator=gen, dtype=dt) * 2 - 1) * math.pi
+        A[:, 2:] = (a * 2 - 1) * math.pi
     B = G * K
     D, A = D.reshape(B, N), A.reshape(B, N)
     target = goal[:, None].expand(G, K, 3).reshape(B, 3)
@@ -153,6 +194,27 @@ def inverse_kinematics(scene: Scene | str, goal, *, starts: int = 8, tol: float 
     return IKResult(insertion=xD[idx], rotation=xA[idx], tip=final.tip_position[idx],
                     error=err[idx], solved=ok[idx], travel=travel[torch.arange(G), best],
                     starts_solved=ok.reshape(G, K).sum(-1))
+
+
+def _random_starts(seed: int, goal: torch.Tensor, D0: torch.Tensor, A0: torch.Tensor,
+                   m: int) -> tuple[torch.Tensor, torch.Tensor]:
+    """Uniform ``[0, 1)`` draws ``(G, m, N)`` for the insertions and rotations of the random
+    starts. Goal ``g``'s draws come from a generator seeded with ``seed`` and the values of its
+    own row (goal, initial insertion and rotation): equal rows get equal starts wherever they
+    sit in the batch, and different rows (e.g. one goal from several initial actuations)
+    independent ones."""
+    G, N = D0.shape
+    u = torch.empty(G, m, N, dtype=D0.dtype)
+    a = torch.empty(G, m, N, dtype=D0.dtype)
+    # (+ 0.0 turns -0.0 into 0.0: the same values give the same bytes)
+    rows = (torch.cat([goal, D0, A0], -1) + 0.0).cpu().numpy()
+    for g in range(G):
+        digest = hashlib.blake2b(rows[g].tobytes(), digest_size=8,
+                                 key=str(seed).encode()).digest()
+        gen = torch.Generator().manual_seed(int.from_bytes(digest, "little") >> 1)
+        u[g] = torch.rand(m, N, generator=gen, dtype=D0.dtype)
+        a[g] = torch.rand(m, N, generator=gen, dtype=D0.dtype)
+    return u, a
 
 
 def _project(D: torch.Tensor, D_max: torch.Tensor) -> torch.Tensor:

@@ -24,6 +24,19 @@ _PROPS = ("E", "G", "inner_diameter", "outer_diameter", "straight_length", "curv
           "precurvature")
 
 
+def _tube_tensors(E, G, inner_diameter, outer_diameter, straight_length, curved_length,
+                  precurvature) -> TubeTensors:
+    """``TubeTensors`` (``(1, N)``, ``coef (1, N, 3, P)``) from the ``CTR`` properties."""
+    second_moment = math.pi * (outer_diameter**4 - inner_diameter**4) / 64.0
+    return TubeTensors(
+        EI=(E * second_moment)[None],
+        GJ=(G * 2.0 * second_moment)[None],
+        length=(straight_length + curved_length)[None],
+        straight=straight_length[None],
+        coef=precurvature[None],
+    )
+
+
 class CTR(nn.Module):
     """A concentric tube robot whose ``forward`` returns its (batched) equilibrium.
 
@@ -56,9 +69,9 @@ class CTR(nn.Module):
                                                     dtype=dtype))
         self.register_buffer("precurvature", coef)
         # The robot's plan (layout reuse between calls at the same insertions); valid while the
-        # properties are unchanged and need no gradient (see _solver_tubes).
-        self._plan = Plan(self.tube_tensors())
-        self._tubes_key = None
+        # properties keep the values it was built from and need no gradient (_solver_tubes).
+        self._plan: Plan | None = None
+        self._plan_values: tuple[torch.Tensor, ...] | None = None
 
     def learnable(self, *names: str) -> CTR:
         """Turn the named buffers into ``nn.Parameter`` s (returns ``self``)."""
@@ -74,14 +87,7 @@ class CTR(nn.Module):
 
     def tube_tensors(self) -> TubeTensors:
         """Derived stiffnesses and lengths as ``(1, N)`` tensors (differentiable)."""
-        second_moment = math.pi * (self.outer_diameter**4 - self.inner_diameter**4) / 64.0
-        return TubeTensors(
-            EI=(self.E * second_moment)[None],
-            GJ=(self.G * 2.0 * second_moment)[None],
-            length=(self.straight_length + self.curved_length)[None],
-            straight=self.straight_length[None],
-            coef=self.precurvature[None],
-        )
+        return _tube_tensors(*(getattr(self, name) for name in _PROPS))
 
     def _check_properties(self) -> None:
         """The scene rules (torchpvs.scene) on the current buffers/parameters, in tensor form:
@@ -117,16 +123,30 @@ class CTR(nn.Module):
                     raise ValueError(f"CTR: tubes[{j}].{name} ({float(value):g}) {rule}")
 
     def _solver_tubes(self) -> tuple[TubeTensors, Plan | None]:
-        """Tube tensors for a solve and the plan to reuse: the cached ones while no property
-        needs a gradient and none was changed in place or moved (version counters), else fresh
-        differentiable ones and no plan."""
+        """Tube tensors for a solve and the plan to reuse: fresh differentiable ones and no
+        plan while a property needs a gradient; else the cached plan while every property
+        holds the values (dtype, device) it was built from, a new plan otherwise.
+
+        The cache is keyed on the values themselves (a copy, compared with ``torch.equal``: 7
+        small tensors per call). Neither ``id(tensor)`` (reused after a free) nor the version
+        counter (not bumped by writes through ``.data``) identifies the properties.
+        """
         props = [getattr(self, name) for name in _PROPS]
         if torch.is_grad_enabled() and any(t.requires_grad for t in props):
             return self.tube_tensors(), None
-        key = tuple((id(t), t._version, t.dtype, t.device) for t in props)
-        if key != self._tubes_key:
-            self._plan = Plan(self.tube_tensors())
-            self._tubes_key = key
+        old = self._plan_values
+        with torch.no_grad():
+            same = old is not None and all(
+                a.shape == b.shape and a.dtype == b.dtype and a.device == b.device
+                and torch.equal(a, b) for a, b in zip(old, props, strict=True))
+        if not same:
+            # The plan is built from the copy, so a later in-place write to a property cannot
+            # reach the plan's tube tensors through a view either. Kept across calls, some
+            # with autograd: no inference tensors (as torchpvs.plan.plan_for).
+            with torch.no_grad(), torch.inference_mode(False):
+                values = tuple(t.detach().clone() for t in props)
+                self._plan = Plan(_tube_tensors(*values))
+            self._plan_values = values
         return self._plan.tubes, self._plan
 
     def forward(self, insertion: torch.Tensor, rotation: torch.Tensor,

@@ -18,6 +18,7 @@ The default kernel, ``"newton"``, is lean where a batch spends its time:
 
 from __future__ import annotations
 
+import time
 from collections.abc import Callable
 from typing import TYPE_CHECKING, NamedTuple
 
@@ -230,7 +231,7 @@ CHUNK_BYTES = 4 << 20    # Hessian bytes per chunk of a large batch (cache-sized
 
 
 def newton(q: torch.Tensor, prob: Problem, L_char: torch.Tensor, *, method: str, tol: float,
-           max_iter: int) -> NewtonResult:
+           max_iter: int, deadline: float | None = None) -> NewtonResult:
     """Batched Newton on the total potential from ``q (B, nq)``; see the module docstring.
 
     ``method="minimize"``: damped Newton with a line search and saddle escapes (returns a local
@@ -238,10 +239,12 @@ def newton(q: torch.Tensor, prob: Problem, L_char: torch.Tensor, *, method: str,
     (capped steps), converging to the nearest stationary point, stable or not.
 
     A batch whose Hessians exceed ``CHUNK_BYTES`` is solved in cache-sized chunks (:func:`chunked`).
+    ``deadline``: a ``time.perf_counter()`` time after which no further step is taken (the
+    elements not converged by then are returned as such, with their residual).
     """
     nq, cidx = q.shape[-1], prob.maps["cidx"]
     qc, H, g, *rest = chunked(_newton, compact_q(q, cidx), prob, L_char, method=method,
-                              tol=tol, max_iter=max_iter)
+                              tol=tol, max_iter=max_iter, deadline=deadline)
     # The Hessian stays compact: expanding it (and releasing the padded copy from inference
     # mode) was ~10 % of a B = 1024 call, for the few callers that need it (implicit backward,
     # actuator stiffness: implicit.full_hessian).
@@ -264,7 +267,7 @@ def chunked(fn, q: torch.Tensor, prob: Problem, *batched: torch.Tensor, **kwargs
 
 
 def _newton(q: torch.Tensor, prob: Problem, L_char: torch.Tensor, *, method: str, tol: float,
-            max_iter: int) -> NewtonResult:
+            max_iter: int, deadline: float | None = None) -> NewtonResult:
     B, nq = q.shape
     dtype, device = q.dtype, q.device
     tol = tolerance(tol, dtype)
@@ -309,7 +312,9 @@ def _newton(q: torch.Tensor, prob: Problem, L_char: torch.Tensor, *, method: str
         converged[idx] = conv
         todo = ~conv & torch.isfinite(q).all(-1)
         n_todo = int(todo.sum())
-        if n_todo == 0:
+        if n_todo == 0 or (deadline is not None and time.perf_counter() > deadline):
+            # (past the deadline: no further step; the state, residual and flags are this
+            # iteration's, as at max_iter)
             if U is not None:
                 U_out[idx] = U
             break
@@ -458,7 +463,7 @@ def _damped_step(H, g, sc, lam, eye):
 def _armijo(f, f0, t, slope):
     # Below the energy's rounding level the Armijo test is noise: accept the step then
     # (the residual test, not the energy, decides convergence).
-    resolution = 8 * torch.finfo(f0.dtype).eps * f0.abs().clamp(min=1e-300)
+    resolution = 8 * torch.finfo(f0.dtype).eps * f0.abs().clamp(min=torch.finfo(f0.dtype).tiny)
     return ((f <= f0 + 1e-4 * t * slope) | (-slope * t <= resolution)
             | (f - f0 <= resolution)) & torch.isfinite(f)
 

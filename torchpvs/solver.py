@@ -125,6 +125,11 @@ class SolverOptions:
             ones whose estimate exceeds ``accuracy`` say so (``accuracy_met``).
         singular_tol: the implicit backward warns (:class:`NearSingularStiffnessWarning`) for
             elements whose scaled stiffness has an eigenvalue below this in magnitude.
+        time_limit: [s] wall-clock bound on the Newton iterations of one call (every order,
+            load step and Magnus refinement; ``None`` = no bound). Checked before every Newton
+            step, so a call overshoots by at most one iteration plus the outputs (forces,
+            pose). When it is reached the solve stops like ``max_total_iter``: unfinished
+            elements are not converged and their reason says so.
     """
 
     accuracy: float = 1e-5
@@ -146,6 +151,7 @@ class SolverOptions:
     kernel: str = "newton"
     load_steps: int = 8
     max_total_iter: int = 200
+    time_limit: float | None = 30.0
 
     def __post_init__(self) -> None:
         if not (isinstance(self.accuracy, (int, float)) and self.accuracy > 0
@@ -173,6 +179,11 @@ class SolverOptions:
         if not isinstance(self.max_total_iter, int) or self.max_total_iter < 1:
             raise ValueError(f"options.max_total_iter must be an integer >= 1, "
                              f"got {self.max_total_iter!r}")
+        if self.time_limit is not None and not (
+                isinstance(self.time_limit, (int, float)) and not isinstance(self.time_limit, bool)
+                and self.time_limit > 0 and math.isfinite(self.time_limit)):
+            raise ValueError(f"options.time_limit must be a positive number of seconds or None, "
+                             f"got {self.time_limit!r}")
         if self.n_quad is not None and (not isinstance(self.n_quad, int) or self.n_quad < 2):
             raise ValueError(f"options.n_quad must be an integer >= 2 or None, got {self.n_quad!r}")
         if self.n_magnus is not None and (not isinstance(self.n_magnus, int)
@@ -313,14 +324,14 @@ def solve_tensors(scene: Scene, tubes: TubeTensors, D, A, F, M, opts: SolverOpti
         # The accuracy is shared between the basis and the pose integration when both are
         # automatic.
         budget = opts.accuracy / 2 if opts.n_magnus is None else opts.accuracy
-        work = _Work(opts.max_total_iter)
+        work = _Work(opts.max_total_iter, opts.time_limit)
         prev = None
         while True:
             # With the automatic order and no load (no load ramp), the solution's tip pose is
             # made by the order check, together with the next order's (one pose call).
             joint = opts.order is None and not bool(_loaded(F, M, opts).any())
             res = _solve_order(scene, tubes, D, A, F, M, order, n_magnus, opts, q_init, plan,
-                               pose=not joint)
+                               pose=not joint, deadline=work.deadline)
             work.spend(res)
             if prev is None:
                 res = _load_ramp(scene, tubes, D, A, F, M, res, opts, plan, q_init, work)
@@ -343,6 +354,7 @@ def solve_tensors(scene: Scene, tubes: TubeTensors, D, A, F, M, opts: SolverOpti
         if opts.n_magnus is None:
             res = _refine_magnus(scene, tubes, D, A, F, M, res, opts, plan, work)
     res["work_exhausted"] = work.exhausted
+    res["timed_out"] = work.timed_out
     diff = None
     # The Hessian is kept on the kernel's compact coordinates (implicit.full_hessian pads it).
     info = {"Hc": res["Hc"], "cidx": res["maps"]["cidx"], "qmask_c": res["maps"]["qmask"],
@@ -566,17 +578,23 @@ def _loaded(F, M, opts: SolverOptions) -> torch.Tensor:
 
 
 class _Work:
-    """Newton iterations spent by one call (the slowest element of each kernel call)."""
+    """Newton iterations spent by one call (the slowest element of each kernel call) and its
+    wall-clock deadline (``time.perf_counter()`` time, or None)."""
 
-    def __init__(self, limit: int):
+    def __init__(self, limit: int, time_limit: float | None = None):
         self.limit, self.spent = limit, 0
+        self.deadline = None if time_limit is None else time.perf_counter() + time_limit
 
     def spend(self, res) -> None:
         self.spent += int(res["iterations"].max()) if res["iterations"].numel() else 0
 
     @property
+    def timed_out(self) -> bool:
+        return self.deadline is not None and time.perf_counter() > self.deadline
+
+    @property
     def exhausted(self) -> bool:
-        return self.spent >= self.limit
+        return self.spent >= self.limit or self.timed_out
 
 
 def _load_ramp(scene, tubes, D, A, F, M, res, opts: SolverOptions, plan: Plan, q_init,
@@ -600,7 +618,7 @@ def _load_ramp(scene, tubes, D, A, F, M, res, opts: SolverOptions, plan: Plan, q
     for k in range(1, n + 1):
         t = k / n
         sub = _solve_order(scene, tubes, Dr, Ar, Fr * t, Mr * t, res["order"],
-                           res["disc"].n_magnus, opts, q, plan)
+                           res["disc"].n_magnus, opts, q, plan, deadline=work.deadline)
         work.spend(sub)
         alive = alive & sub["converged"]
         reached = torch.where(alive, torch.full_like(reached, t), reached)
@@ -657,7 +675,8 @@ def _refine_magnus(scene, tubes, D, A, F, M, res, opts: SolverOptions, plan: Pla
                 break
             m *= 2
             ramp = res.get("ramp")
-            res = _solve_order(scene, tubes, D, A, F, M, res["order"], m, opts, res["q"], plan)
+            res = _solve_order(scene, tubes, D, A, F, M, res["order"], m, opts, res["q"], plan,
+                               deadline=None if work is None else work.deadline)
             if work is not None:
                 work.spend(res)
             if ramp is not None:
@@ -750,9 +769,10 @@ def _resize_q(q: torch.Tensor, N: int, n_from: int, n_to: int) -> torch.Tensor:
 
 
 def _solve_order(scene, tubes, D, A, F, M, order, n_magnus, opts, q_init, plan: Plan,
-                 pose: bool = True):
+                 pose: bool = True, deadline: float | None = None):
     """Newton at one discretization. ``pose=False``: without the tip pose (``tip``, ``R``) and
-    its finiteness in ``converged``; :func:`_order_estimate` then adds them."""
+    its finiteness in ``converged``; :func:`_order_estimate` then adds them. ``deadline``: a
+    ``time.perf_counter()`` time after which the kernel takes no further step."""
     disc = replace(opts.discretization(order), n_magnus=n_magnus)
     N = scene.n_tubes
     dtype, device = D.dtype, D.device
@@ -775,7 +795,7 @@ def _solve_order(scene, tubes, D, A, F, M, order, n_magnus, opts, q_init, plan: 
     L_char = (lay.ell.amax(-1) + D.amax(-1)).clamp(min=1e-6)           # (B,)
     prob = Problem(lay, tab, maps, with_load, has_moment)
     out = KERNELS[opts.kernel](q, prob, L_char, method=opts.method, tol=_newton_tol(scene, opts),
-                               max_iter=opts.max_iter)
+                               max_iter=opts.max_iter, deadline=deadline)
     res = {"q": out.q, "lay": lay, "tab": tab, "disc": disc, "order": order, "Hc": out.H,
            "g": out.g, "converged": out.converged, "verdict": out.verdict,
            "residual": out.residual, "iterations": out.iterations, "energy": out.energy,
@@ -814,8 +834,10 @@ def _default_guess(lay, maps, tab, disc, N):
     cs, sn = torch.cos(psi), torch.sin(psi)
     Rx = cs * us[..., 0] - sn * us[..., 1]
     Ry = sn * us[..., 0] + cs * us[..., 1]
-    # stiffness-weighted (present tubes): EIw / EIws, the node weights cancel
-    wgt = maps["EIw"] / maps["EIws"][..., None].clamp(min=1e-300)
+    # stiffness-weighted (present tubes): EIw / EIws, the node weights cancel. Padded compact
+    # sections have EIws = 0: the clamp must be representable in the dtype (1e-300 is 0 in
+    # float32, and 0 / 0 made the whole guess NaN; issue 27, item 2).
+    wgt = maps["EIw"] / maps["EIws"][..., None].clamp(min=torch.finfo(maps["EIws"].dtype).tiny)
     u_avg = torch.stack([sum_dim(wgt * Rx, -1), sum_dim(wgt * Ry, -1)], -1)   # (B, S, Q, 2)
     a = 0.5 * torch.einsum("bsgd,gp,g->bsdp", u_avg, tab["phi_q"], tab["wq"])
     X = torch.zeros(B, S, 2 + N, n, dtype=a.dtype, device=a.device)

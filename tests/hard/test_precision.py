@@ -85,3 +85,18 @@ def test_extreme_scenes(case):
           "6 tubes": nested_scene(6, 0)}[case]
     err, *_ = compare(sc)
     assert err < TOL, err
+
+
+def test_float32_batch_with_different_section_counts():
+    """Issue 27, item 2: in float32, a batch whose elements have different numbers of active
+    sections ((0.10, 0.20) beside (0.05, 0.15) and (0, 0.1) on the Fig. 3 robot) started the
+    element with fewer sections from NaN (the default guess divided 0 by a 1e-300 clamp, which
+    is 0 in float32) and reported it unconverged after 0 iterations. Reference: each element
+    solved alone in float32, and the float64 batch (TOL)."""
+    D = torch.tensor([[0.10, 0.20], [0.05, 0.15], [0.0, 0.10]], dtype=torch.float64)
+    A = torch.tensor([[0.0, 1.0], [0.5, 2.0], [1.0, -1.0]], dtype=torch.float64)
+    err, e32, _ = compare(fig3(), insertion=D, rotation=A)
+    assert err < TOL, err
+    for b in range(3):
+        solo = tp.solve(fig3(), insertion=D[b], rotation=A[b], options=F32)
+        assert float((solo.tip_position[0] - e32.tip_position[b]).norm()) < 1e-6
