@@ -17,6 +17,7 @@ EXAMPLES = {
     "position_vs_torque_control.py": ([], "position_vs_torque.png"),
     "design_optimization.py": ([], "design_optimization.png"),
     "force_controller.py": ([], "force_controller.png"),
+    "calibration.py": (["--measurements", "20"], "calibration.png"),
 }
 
 

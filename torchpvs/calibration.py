@@ -426,7 +426,7 @@ def calibrate(scene: Scene | str, insertion, rotation, tip, *,
         r = (e[..., None] * sw).reshape(3 * M)
         g = Js.T @ r
         Hm = Js.T @ Js
-        step_taken = False
+        step_taken, at_floor = False, False
         for _ in range(12):
             Ad = Hm + lam * np.diag(np.maximum(np.diag(Hm), 1e-12 * np.trace(Hm) / P + 1e-300))
             try:
@@ -435,6 +435,9 @@ def calibrate(scene: Scene | str, insertion, rotation, tip, *,
                 lam *= 10.0
                 continue
             z_new = np.clip(z + dz, lo, hi)
+            # the decrease the Gauss-Newton model predicts for this step (scaled units)
+            u = (z_new - z) / scale
+            predicted = -(g @ u) - 0.5 * u @ Hm @ u
             if model.feasible(z_new) is not None:
                 lam *= 10.0
                 history.append(CalibrationStep(cost, rms, lam, False))
@@ -458,9 +461,17 @@ def calibrate(scene: Scene | str, insertion, rotation, tip, *,
                               "step below tol" if small else
                               "tip residuals below 1 % of the solver's accuracy")
                 break
+            if predicted <= max(tol, 1e-6) * cost:
+                # what is left to gain is below the noise of the solves themselves (their
+                # accuracy): this is the minimum, to the model's precision
+                at_floor = True
+                break
             lam *= 10.0
             history.append(CalibrationStep(cost, rms, lam, False))
             model.initial = None   # the rejected solve's equilibria are not a good warm start
+        if at_floor:
+            converged, reason = True, "predicted decrease below tol (the solver's precision)"
+            break
         if converged:
             break
         if not step_taken:
