@@ -641,3 +641,61 @@ def test_loaded_real_solve_prints_nothing_on_stderr(tmp_path):
     assert proc.returncode == 0, proc.stderr
     assert proc.stderr == ""
     assert strict_json(proc.stdout)["converged"] is True
+
+
+# -- torchpvs calibrate -----------------------------------------------------------------------
+
+def _calibration_csv(path: Path, rows: int = 12, weight: bool = False) -> None:
+    """Noise-free PVS tips of the Fig. 3 robot with precurvatures scaled by 1.06 / 0.95."""
+    import torch
+
+    import torchpvs
+    from torchpvs.testing import feasible_actuations, scaled_tubes
+    rng = np.random.default_rng(0)
+    D, A = feasible_actuations(rng, rows)
+    truth = scaled_tubes(load_scene("renda2021_fig3"), precurvature=(1.06, 0.95))
+    tip = torchpvs.solve(truth, insertion=torch.tensor(D),
+                         rotation=torch.tensor(A)).tip_position.numpy()
+    head = "insertion_0,insertion_1,rotation_0,rotation_1,tip_x,tip_y,tip_z"
+    data = np.concatenate([D, A, tip] + ([np.ones((rows, 1))] if weight else []), -1)
+    np.savetxt(path, data, delimiter=",", header=head + (",weight" if weight else ""),
+               comments="")
+
+
+def test_calibrate_writes_the_fitted_scene(tmp_path, capsys):
+    csv_path = tmp_path / "tips.csv"
+    _calibration_csv(csv_path, weight=True)
+    out = tmp_path / "fitted.yaml"
+    code = main(["calibrate", "renda2021_fig3", str(csv_path), "--params", "precurvature",
+                 "-o", str(out), "--json"])
+    assert code == 0
+    report = json.loads(capsys.readouterr().out)
+    assert report["converged"] and report["output"] == str(out)
+    assert report["parameters"]["precurvature[0]"]["value"] == pytest.approx(1.06, rel=1e-5)
+    fitted = load_scene(str(out))
+    nominal = load_scene("renda2021_fig3")
+    for j, f in enumerate((1.06, 0.95)):
+        assert fitted.tubes[j].precurvature[1][0] == pytest.approx(
+            f * nominal.tubes[j].precurvature[1][0], rel=1e-5)
+    assert out.read_text().startswith("# fitted by `torchpvs calibrate")
+
+
+@pytest.mark.parametrize("text, fragment", [
+    ("insertion_0,rotation_0,tip_x\n1,2,3\n", "missing column(s) ['insertion_1'"),
+    ("insertion_0,insertion_1,rotation_0,rotation_1,tip_x,tip_y,tip_z\n"
+     "0.05,0.1,0,0,abc,0,0.1\n", "line 2: column tip_x is not a number"),
+    ("insertion_0,insertion_1,rotation_0,rotation_1,tip_x,tip_y,tip_z\n", "no measurements"),
+])
+def test_calibrate_names_the_bad_column(tmp_path, capsys, text, fragment):
+    path = tmp_path / "bad.csv"
+    path.write_text(text)
+    assert main(["calibrate", "renda2021_fig3", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert fragment in err and err.count("\n") == 1
+
+
+def test_calibrate_refuses_an_unknown_parameter(tmp_path, capsys):
+    csv_path = tmp_path / "tips.csv"
+    _calibration_csv(csv_path, rows=3)
+    assert main(["calibrate", "renda2021_fig3", str(csv_path), "--params", "stiffness"]) == 2
+    assert "unknown parameter 'stiffness'" in capsys.readouterr().err

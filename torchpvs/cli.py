@@ -96,6 +96,26 @@ def _build_parser() -> _Parser:
 
     sub.add_parser("scenes", help="list the built-in scenes",
                    description="List the built-in scene names, one per line.")
+
+    p = sub.add_parser(
+        "calibrate", help="fit a scene to measured tips and write the fitted scene",
+        description="Fit tube properties and actuator offsets of SCENE to measured tips "
+        "(torchpvs.calibrate, docs/calibration.md). MEASUREMENTS is a CSV file with a header "
+        "and one row per measurement: insertion_0..insertion_{N-1} [m], rotation_0.."
+        "rotation_{N-1} [rad] (commanded; tube 0 = outermost), tip_x, tip_y, tip_z [m] "
+        "(base frame) and optionally weight. Prints the report; writes the fitted scene "
+        "as YAML (offsets in its header comment). Exit 0 converged, 1 not converged, 2 bad "
+        "input.")
+    p.add_argument("scene", metavar="SCENE", help="the nominal scene (file or built-in name)")
+    p.add_argument("measurements", metavar="MEASUREMENTS", help="CSV file (see above)")
+    p.add_argument("--params", nargs="+", default=["precurvature"], metavar="NAME",
+                   help="parameters to fit (default precurvature), e.g. precurvature E[1] G "
+                        "insertion_offset")
+    p.add_argument("--huber-scale", type=float, default=5e-4, metavar="M",
+                   help="[m] Huber scale of the tip error (default 5e-4; 0 = least squares)")
+    p.add_argument("-o", "--output", metavar="FILE",
+                   help="fitted scene YAML (default <MEASUREMENTS stem>_fitted.yaml)")
+    p.add_argument("--json", action="store_true", help="print the fit as one JSON object")
     return parser
 
 
@@ -340,7 +360,7 @@ def _cmd_plot(args: argparse.Namespace) -> int:
     contract = _contract(sol)
     points = _backbone(sol, args.points)
     # save_backbone_plot creates missing parent folders (documented in --help); say so, so
-    # that a mistyped path does not go unnoticed (issue 27, item 12).
+    # that a mistyped path does not go unnoticed.
     created = next((p for p in reversed(Path(args.output).absolute().parents)
                     if not p.exists()), None)
     try:
@@ -407,7 +427,92 @@ def _cmd_scenes(args: argparse.Namespace) -> int:
     return 0
 
 
-_COMMANDS = {"solve": _cmd_solve, "plot": _cmd_plot, "demo": _cmd_demo, "scenes": _cmd_scenes}
+def _read_measurements(path: str, n_tubes: int):
+    """``(insertion (M, N), rotation (M, N), tip (M, 3), weights (M,) or None)`` from the
+    calibration CSV; a missing column or a bad value names the column and the row."""
+    import csv
+
+    cols = ([f"insertion_{j}" for j in range(n_tubes)] + [f"rotation_{j}" for j in range(n_tubes)]
+            + ["tip_x", "tip_y", "tip_z"])
+    try:
+        with open(path, newline="") as f:
+            reader = csv.DictReader(f)
+            header = [h.strip() for h in (reader.fieldnames or [])]
+            missing = [c for c in cols if c not in header]
+            if missing:
+                raise CLIError(f"{path}: missing column(s) {missing} (header: {header}; the "
+                               f"scene has {n_tubes} tubes)")
+            rows = []
+            for i, raw in enumerate(reader, start=2):
+                row = {k.strip(): v for k, v in raw.items() if k is not None}
+                try:
+                    rows.append([float(row[c]) for c in cols]
+                                + ([float(row["weight"])] if "weight" in header else []))
+                except (TypeError, ValueError):
+                    bad = next(c for c in cols + ["weight"] if c in row
+                               and not _is_float(row[c]))
+                    raise CLIError(f"{path}, line {i}: column {bad} is not a number: "
+                                   f"{_short(str(row[bad]))}") from None
+    except OSError as exc:
+        raise CLIError(f"cannot read {path!r}: {_one_line(exc)}") from None
+    if not rows:
+        raise CLIError(f"{path}: no measurements (only a header)")
+    import numpy as np
+    a = np.array(rows)
+    N = n_tubes
+    return a[:, :N], a[:, N:2 * N], a[:, 2 * N:2 * N + 3], (a[:, -1] if "weight" in header
+                                                            else None)
+
+
+def _is_float(text) -> bool:
+    try:
+        float(text)
+    except (TypeError, ValueError):
+        return False
+    return True
+
+
+def _cmd_calibrate(args: argparse.Namespace) -> int:
+    import yaml
+
+    from .calibration import calibrate
+
+    scene = _load(args.scene, [])
+    D, A, T, w = _read_measurements(args.measurements, scene.n_tubes)
+    try:
+        cal = calibrate(scene, D, A, T, params=args.params, weights=w,
+                        huber_scale=args.huber_scale or None)
+    except ValueError as exc:
+        raise CLIError(_one_line(exc)) from None
+    out = Path(args.output or Path(args.measurements).with_name(
+        Path(args.measurements).stem + "_fitted.yaml"))
+    header = (f"# fitted by `torchpvs calibrate {args.scene} {args.measurements}` to "
+              f"{len(T)} measurements: inlier tip rms {cal.rms * 1e3:.4f} mm, "
+              f"{'converged' if cal.converged else 'NOT converged'} ({cal.reason})\n"
+              f"# actuator offsets (not part of a scene; D_true = D_cmd + offset): "
+              f"insertion_offset {cal.insertion_offset.tolist()} m, rotation_offset "
+              f"{cal.rotation_offset.tolist()} rad\n")
+    try:
+        out.write_text(header + yaml.safe_dump(cal.scene.to_dict(), sort_keys=False))
+    except OSError as exc:
+        raise CLIError(f"cannot write {str(out)!r}: {_one_line(exc)}") from None
+    if args.json:
+        print(json.dumps({
+            "converged": bool(cal.converged), "reason": cal.reason,
+            "iterations": cal.iterations, "rms_m": cal.rms,
+            "parameters": {n: {"value": float(v), "std": float(sd)}
+                           for n, v, sd in zip(cal.names, cal.value, cal.std, strict=True)},
+            "unidentifiable": [list(g) for g in cal.identifiability.unidentifiable],
+            "insertion_offset": cal.insertion_offset.tolist(),
+            "rotation_offset": cal.rotation_offset.tolist(), "output": str(out)}))
+    else:
+        print(cal.report())
+        print(f"wrote {out}")
+    return 0 if cal.converged else 1
+
+
+_COMMANDS = {"solve": _cmd_solve, "plot": _cmd_plot, "demo": _cmd_demo, "scenes": _cmd_scenes,
+             "calibrate": _cmd_calibrate}
 
 
 def main(argv: Sequence[str] | None = None) -> int:
