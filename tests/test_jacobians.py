@@ -130,3 +130,35 @@ def test_actuator_stiffness_with_a_base_at_the_orifice_uses_the_general_rows():
         np.testing.assert_allclose(actuator_stiffness(eq).numpy(),
                                    eq.jacobians().actuator_stiffness.numpy(),
                                    rtol=1e-7, atol=1e-9)
+
+
+def test_actuator_stiffness_of_a_batch_of_different_robots():
+    """A batch whose elements have their own tube properties (solve_tensors with (B, N) tube
+    tensors, as the environments' perturbed plants) gives each element the stiffness of its
+    own robot solved alone, also for a subset of rows."""
+    from torchpvs.jacobians import actuator_stiffness
+    from torchpvs.plan import tube_tensors
+    from torchpvs.sections import TubeTensors
+    from torchpvs.solver import solve_tensors
+    from torchpvs.testing import scaled_tubes
+
+    scene = tp.load_scene("renda2021_fig3")
+    f = torch.tensor([[[1.05, 0.95], [0.9, 1.1], [1.0, 1.08]],
+                      [[0.93, 1.02], [1.1, 0.97], [0.95, 1.0]]], dtype=torch.float64)
+    D = torch.tensor([[0.05, 0.12], [0.03, 0.15]], dtype=torch.float64)
+    A = torch.tensor([[0.3, 1.2], [-0.5, 0.4]], dtype=torch.float64)
+    F = torch.tensor([[0.1, -0.2, 0.05], [0.0, 0.0, 0.0]], dtype=torch.float64)
+    b = tube_tensors(scene, torch.float64, torch.device("cpu"))
+    tubes = TubeTensors(EI=b.EI * f[:, 1], GJ=b.GJ * f[:, 2], length=b.length.expand(2, -1),
+                        straight=b.straight.expand(2, -1), coef=b.coef * f[:, 0, :, None, None])
+    opts = tp.SolverOptions(order=2, n_magnus=8)
+    eq = solve_tensors(scene, tubes, D, A, F, torch.zeros_like(F), opts, None, None)
+    K = actuator_stiffness(eq)
+    np.testing.assert_allclose(actuator_stiffness(eq, [1])[0].numpy(), K[1].numpy(), atol=1e-12)
+    for i in range(2):
+        own = scaled_tubes(scene, *f[i].numpy())
+        e = tp.solve(own, insertion=D[i], rotation=A[i], tip_force=F[i], options=opts)
+        np.testing.assert_allclose(e.tip_position[0].numpy(), eq.tip_position[i].numpy(),
+                                   atol=1e-15)
+        np.testing.assert_allclose(actuator_stiffness(e)[0].numpy(), K[i].numpy(),
+                                   rtol=1e-10, atol=1e-12 * float(K[i].abs().max()))
