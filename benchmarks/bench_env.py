@@ -1,4 +1,4 @@
-"""Environment throughput: robot-steps per second of the reaching envs (issue 5, item 6).
+"""Environment throughput: robot-steps per second of the reaching envs.
 
 Times, side by side in one run and on the same seeded random actions,
 

@@ -1,4 +1,4 @@
-"""HER and the snap penalty: what each way of keeping the penalty costs when sampling (issue 13).
+"""HER and the snap penalty: what each way of keeping the penalty costs when sampling.
 
 SB3's ``HerReplayBuffer`` relabels a stored transition with a goal achieved later in its episode
 and recomputes the reward with ``env.compute_reward(next_achieved_goal, new_goal, infos)``; by

@@ -1,5 +1,5 @@
 """Implicit-function gradients of the PVS tip against central finite differences of the
-independent standard-model reference (issue 4, item 1: "gradients match central finite
+independent standard-model reference ("gradients match central finite
 differences of the reference solver on random scenes, 1e-4 relative").
 
 The PVS side is one high-accuracy solve differentiated by the custom backward

@@ -57,7 +57,7 @@ def test_an_unreachable_goal_is_reported_not_raised():
     (dict(goal=[0.0, 0.0, 0.1], starts=0), "starts"),
     (dict(goal=[0.0, 0.0, 0.1], tol=-1.0), "tol"),
     (dict(goal=[0.0, 0.0, 0.1], min_exposed=10.0), "min_exposed"),
-    # issue 27, item 4: these used to be accepted (or fail inside the solver)
+    # these used to be accepted (or fail inside the solver)
     (dict(goal=[0.0, 0.0, 0.1], min_exposed=-1.0), "min_exposed must be a length >= 0"),
     (dict(goal=[0.0, 0.0, 0.1], initial_insertion=[0.2, 0.1]),
      r"initial_insertion: D_j must be >= D_\{j-1\}"),
@@ -78,7 +78,7 @@ def test_bad_arguments_name_the_field(kwargs, match):
         tp.inverse_kinematics(SC, **kwargs)
 
 
-GOAL_A = [0.03, 0.02, 0.09]     # issue 27, items 2 and 3
+GOAL_A = [0.03, 0.02, 0.09]
 
 
 def test_a_goal_gets_the_same_answer_wherever_it_sits_in_the_batch():

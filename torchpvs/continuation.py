@@ -332,7 +332,7 @@ def continuation(scene: Scene | str, path: Any, *, options: SolverOptions | None
             # on. Close to a fold the tip speed grows like 1 / sqrt(s_fold - s), so a stretch
             # can exceed max_tip_jump per step without ending: no snap here (order 2 on the
             # section III-B robot reported such stretches 0.2 deg before its fold as folds
-            # with 0.3 mm and 1.0 mm "jumps"; issue 27, item 9).
+            # with 0.3 mm and 1.0 mm "jumps").
             if bar is not None:
                 bar.update(abs(hi - s))
             s, cur = hi, after

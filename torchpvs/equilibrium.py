@@ -203,7 +203,7 @@ class Equilibrium:
         conv = res["converged"]
         # A verdict needs an equilibrium: where the solve did not converge, the state is not
         # one, and its Hessian's sign says nothing about stability (a precurvature of 1e6 1/m
-        # reported converged=False, stable=True; issue 27, item 12).
+        # reported converged=False, stable=True).
         conv_list = conv.tolist()
         reason = tuple("converged" if conv_list[b] else _failure_reason(res, opts, b)
                        for b in range(B))

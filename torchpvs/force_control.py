@@ -239,8 +239,8 @@ def solve_force_controlled(
     # Tolerances follow the dtype: tau = dU*/dx rounds at about eps x the scale of the energy
     # (measured on the Fig. 3 robot in float32 against float64: torques within 2.4 eps E,
     # forces within 31 eps E / ell, E = 0.72 J), so a threshold below that floor can never be
-    # met (float32 used to stall 3e-8 N·m from a 1e-10 target and report "unreachable";
-    # issue 27, item 5). In float64 the floors (~1e-15 N·m, ~3e-14 N) lie far below the
+    # met (float32 used to stall 3e-8 N·m from a 1e-10 target and report "unreachable").
+    # In float64 the floors (~1e-15 N·m, ~3e-14 N) lie far below the
     # defaults.
     eps = torch.finfo(dtype).eps
     E = _energy_scale(scene, F, M, cmd, free, ell)                              # (B,) [J]

@@ -124,7 +124,7 @@ def adjoint_factor(q_star, info, D, alpha, F, M, EI, GJ, L, Ls, coef):
     tol = info["singular_tol"]
     eye_c = torch.eye(Hc.shape[-1], dtype=H.dtype, device=H.device)
     # A non-finite stiffness (an element whose solve overflowed: not converged) has no
-    # spectrum; LAPACK's eigh raises on it (issue 27, item 2), so it is reported on its own.
+    # spectrum; LAPACK's eigh raises on it, so it is reported on its own.
     finite = torch.isfinite(Hc).flatten(1).all(-1)
     maybe = (torch.linalg.cholesky_ex(Hc - tol * eye_c)[1] != 0) & finite
     near = torch.zeros_like(maybe)

@@ -137,7 +137,7 @@ def inverse_kinematics(scene: Scene | str, goal, *, starts: int = 8, tol: float 
     if K > 2:
         # The same seeded starts for every goal: a goal's answer must not depend on where it
         # sits in the batch (drawn per batch, goal g got rows g of a (G, K - 2, N) draw, so
-        # [A] and [A, A] returned different actuations for A; issue 27, item 3).
+        # [A] and [A, A] returned different actuations for A).
         u, a = _random_starts(seed, goal, D0, A0, K - 2)
         D[:, 2:] = _project(torch.cummax(u * D_max, -1).values, D_max)
         A[:, 2:] = (a * 2 - 1) * math.pi

@@ -836,7 +836,7 @@ def _default_guess(lay, maps, tab, disc, N):
     Ry = sn * us[..., 0] + cs * us[..., 1]
     # stiffness-weighted (present tubes): EIw / EIws, the node weights cancel. Padded compact
     # sections have EIws = 0: the clamp must be representable in the dtype (1e-300 is 0 in
-    # float32, and 0 / 0 made the whole guess NaN; issue 27, item 2).
+    # float32, and 0 / 0 made the whole guess NaN).
     wgt = maps["EIw"] / maps["EIws"][..., None].clamp(min=torch.finfo(maps["EIws"].dtype).tiny)
     u_avg = torch.stack([sum_dim(wgt * Rx, -1), sum_dim(wgt * Ry, -1)], -1)   # (B, S, Q, 2)
     a = 0.5 * torch.einsum("bsgd,gp,g->bsdp", u_avg, tab["phi_q"], tab["wq"])

@@ -251,7 +251,7 @@ def zero_residual_head(model) -> None:
     last linear layer and its target copy, PPO ``action_net``), so that the untrained residual
     agent's deterministic action is exactly 0: it starts as its base controller, and learning
     moves it away only where the critic finds a gain (a random head starts it below the base,
-    and a residual agent has been measured to stay there: issue 13)."""
+    and a residual agent has been measured to stay there)."""
     import torch
 
     policy = model.policy

@@ -1,4 +1,4 @@
-"""Two-sided carriage contact (issue 13, item 1): carriages in contact at the nesting and
+"""Two-sided carriage contact: carriages in contact at the nesting and
 tip-order stops move together under the net force and report the contact force."""
 
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""HER keeps the snap penalty (issue 13, item 1): the snap flag rides in ``achieved_goal``, so
+"""HER keeps the snap penalty: the snap flag rides in ``achieved_goal``, so
 SB3's HerReplayBuffer with its defaults (``copy_info_dict=False``) relabels a snap step with
 its penalty; all three env faces compute the same rewards."""
 

@@ -39,7 +39,7 @@ def test_seeded_reset_is_deterministic_and_seeds_differ():
 
 
 def test_holding_the_elastic_force_keeps_the_robot_at_rest():
-    """Physics of a step: b xdot = tau - g(x); with tau = g(x) nothing moves (issue 5)."""
+    """Physics of a step: b xdot = tau - g(x); with tau = g(x) nothing moves."""
     env = CTRReachEnv()
     env.reset(seed=3)
     x0, g = env.actuation, env.elastic_forces
@@ -215,8 +215,8 @@ def test_relaxation_dissipates_energy_even_at_kinks():
     """tau_cmd = 0 with damping: b xdot = -g = -dU*/dx is a gradient flow, so U* must not grow.
     The linearly implicit step alone overshoots where U*(x) has a kink (a straight-to-curved
     transition crossing a tube end, docs/physics.md "sliding section boundaries"): an O(h) rise, up
-    to 8.6e-4 J per step on these robots. The Armijo acceptance of envs/dynamics.py (issue 14,
-    item 9) rejects such steps, so U* never rises beyond round-off, at either period, and every
+    to 8.6e-4 J per step on these robots. The Armijo acceptance of envs/dynamics.py
+    rejects such steps, so U* never rises beyond round-off, at either period, and every
     robot's energy drops overall."""
     e1, e2 = _energy_rollout(0.1), _energy_rollout(0.05)
     scale = np.abs(e1).max()

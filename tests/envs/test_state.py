@@ -1,4 +1,4 @@
-"""``state()``: the one documented way for controllers to read the robots (issue 13, item 1)."""
+"""``state()``: the one documented way for controllers to read the robots."""
 
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""Hard suite, issue 14 items 5, 8, 11 (scene, CLI, environments): property tests over the
+"""Hard suite (scene, CLI, environments): property tests over the
 classes of bad input, so that none of them comes back.
 
 * any numeric field of a scene given a value of a refused class (an integer beyond the float
