@@ -34,10 +34,11 @@ __all__ = ["CTRReachEnv", "CTRReachVectorEnv", "CarriageModel", "ReachConfig", "
 MAX_EPISODE_STEPS = 100
 ENV_IDS = {"torchpvs/CTRReachForce-v0": "force", "torchpvs/CTRReachJoint-v0": "joint"}
 
+# the entry points fix the id's control: gym.make(force id, control="joint") raises
 for _id, _control in ENV_IDS.items():
     if _id not in registry:
-        register(id=_id, entry_point="envs.reach_env:CTRReachEnv",
-                 vector_entry_point="envs.vector:CTRReachVectorEnv",
+        register(id=_id, entry_point=f"envs.reach_env:make_{_control}_env",
+                 vector_entry_point=f"envs.vector:make_{_control}_vector_env",
                  max_episode_steps=MAX_EPISODE_STEPS, kwargs={"control": _control})
 
 

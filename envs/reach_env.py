@@ -16,9 +16,9 @@ from torchpvs import Scene
 
 from .dynamics import CarriageModel
 from .robots import Robot, make_robot
-from .task import ReachBatch, ReachConfig, RobotState, her_reward
+from .task import ReachBatch, ReachConfig, RobotState, her_reward, registered_kwargs
 
-__all__ = ["CTRReachEnv"]
+__all__ = ["CTRReachEnv", "make_force_env", "make_joint_env"]
 
 
 class CTRReachEnv(gym.Env):
@@ -70,24 +70,30 @@ class CTRReachEnv(gym.Env):
 
     # -- Gymnasium API ----------------------------------------------------------------------
     def reset(self, *, seed: int | None = None, options: dict | None = None):
+        """Gymnasium's reset. ``options`` (all optional; any other key raises ``ValueError``):
+        ``"goal"``, a goal position ``(3,)`` [m] in the base frame for this episode instead of
+        a sampled one (finite, within ``2 x robot.reach`` of the orifice; the start is the
+        one the seed gives without the option, ``goal_min_distance`` does not apply,
+        reachability is not checked);
+        ``"tolerance"``, the success radius [m] from now on (as :meth:`set_tolerance`)."""
+        tol, goal = self.task.reset_options(options, 1)
         super().reset(seed=seed)
-        # the task draws from a generator derived from the env's own np_random
-        self.task.rngs = [np.random.default_rng(self.np_random.integers(2**63))]
-        if options and "tolerance" in options:
-            self.set_tolerance(options["tolerance"])
-        self.task.reset(np.array([0]))
-        self._last_info = {"is_success": self._distance() <= self.task.tolerance,
-                           "distance": self._distance(), "snapped": False,
-                           "solver_failure": False}
+        # the task draws its episode's generator from the env's own np_random
+        self.task.np_randoms[0] = self.np_random
+        if tol is not None:
+            self.set_tolerance(tol)
+        self.task.reset(np.array([0]), goal=goal)
+        self._last_info = self.task.reset_info(0)
         if self.render_mode == "human":
             self.render()
         return self._obs(), dict(self._last_info)
 
     def step(self, action):
+        if not self.task.ready[0]:
+            raise gym.error.ResetNeeded("CTRReachEnv.step() before reset(): call reset() first")
         a = self.task.check_action(action, self.action_space.shape)  # raises on NaN/shape
         reward, terminated, truncated, infos = self.task.step(a[None])
-        info = {k: (v[0].copy() if isinstance(v, np.ndarray) and v.ndim > 1 else
-                    v[0].item() if isinstance(v, np.ndarray) else v) for k, v in infos.items()}
+        info = self.task.info_of(infos, 0)
         self._last_info = info
         if self.render_mode == "human":
             self.render()
@@ -137,9 +143,6 @@ class CTRReachEnv(gym.Env):
     def _obs(self) -> dict[str, np.ndarray]:
         return {k: v[0] for k, v in self.task.observations().items()}
 
-    def _distance(self) -> float:
-        return float(np.linalg.norm(self.task.robots.tip[0] - self.task.goal[0]))
-
     @property
     def actuation(self) -> np.ndarray:
         """Current actuator coordinates ``(2N,)`` ``(D [m], alpha [rad])``."""
@@ -150,3 +153,18 @@ class CTRReachEnv(gym.Env):
         """Current ``g = dU*/dx`` ``(2N,)`` [N, N·m]."""
         return self.task.robots.g[0].copy()
 
+
+# -- the registered ids' entry points: the id fixes the control ----------------------------
+def make_force_env(**kwargs: Any) -> CTRReachEnv:
+    """``torchpvs/CTRReachForce-v0``: a :class:`CTRReachEnv` with force control (a
+    ``control=`` naming another control raises ``ValueError``)."""
+    return CTRReachEnv(**registered_kwargs("force", kwargs))
+
+
+def make_joint_env(**kwargs: Any) -> CTRReachEnv:
+    """``torchpvs/CTRReachJoint-v0``: a :class:`CTRReachEnv` with joint control."""
+    return CTRReachEnv(**registered_kwargs("joint", kwargs))
+
+
+# gym.make reads the entry point's render modes
+make_force_env.metadata = make_joint_env.metadata = CTRReachEnv.metadata

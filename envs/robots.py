@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass, field
+from pathlib import Path
 
 import numpy as np
 import torch
@@ -207,6 +208,13 @@ def make_robot(robot: str | Robot | Scene, **overrides) -> Robot:
     elif isinstance(robot, str) and robot in ROBOTS:
         base = ROBOTS[robot]()
     else:
+        if isinstance(robot, str) and not (Path(robot).suffix in (".yaml", ".yml", ".json")
+                                           or Path(robot).exists()
+                                           or robot in torchpvs.builtin_scenes()):
+            raise torchpvs.SceneError(
+                f"unknown robot {robot!r}: the env robots are {sorted(ROBOTS)}; robot= also "
+                f"takes a torchpvs scene (built-in: {', '.join(torchpvs.builtin_scenes())}), a "
+                f"scene file (.yaml, .yml, .json), a Scene or an envs.Robot")
         scene = torchpvs.load_scene(robot) if isinstance(robot, str) else robot
         if not isinstance(scene, Scene):
             raise TypeError(f"robot must be a preset name {sorted(ROBOTS)}, a Robot, a Scene or "

@@ -32,7 +32,7 @@ measures the distance on the first three entries only (a relabelled desired goal
 it is ignored). The flag rides in ``achieved_goal`` because SB3's ``HerReplayBuffer`` keeps
 the goals of every stored transition but, by default (``copy_info_dict=False``), not its
 ``info``: with the flag in ``info`` a snap step relabelled with the goal it reached read reward
-0 and done, a rewarded escape (issue 13). Measured sampling cost of the alternatives
+0 and done, a rewarded escape. Measured sampling cost of the alternatives
 (``benchmarks/her_snap.py``) in docs/environments.md. The tolerance is not in the observation:
 HER recomputes rewards with the current tolerance (set_tolerance).
 """
@@ -44,6 +44,8 @@ from dataclasses import dataclass
 
 import numpy as np
 from gymnasium import spaces
+from gymnasium.error import ResetNeeded
+from gymnasium.utils import seeding
 
 from .dynamics import CarriageModel, RobotBatch
 from .robots import Robot, solve_batch
@@ -170,6 +172,29 @@ class RobotState:
     control_period: float
 
 
+ENV_ID_OF_CONTROL = {"force": "torchpvs/CTRReachForce-v0", "joint": "torchpvs/CTRReachJoint-v0"}
+
+
+def registered_kwargs(control: str, kwargs: dict) -> dict:
+    """The keyword arguments of an env made through the registered id of ``control``: a
+    ``control=`` that names another control is refused (``gym.make(force id,
+    control="joint")`` used to build a joint env under the force id)."""
+    given = kwargs.get("control", control)
+    if given != control:
+        other = ENV_ID_OF_CONTROL.get(given) if isinstance(given, str) else None
+        hint = (f"make {other!r} for {given} control" if other else
+                f"control must be one of {sorted(ENV_ID_OF_CONTROL)}")
+        raise ValueError(f"control={given!r} contradicts the env id "
+                         f"{ENV_ID_OF_CONTROL[control]!r}, which is {control} control: {hint}, "
+                         f"or leave control out")
+    return {**kwargs, "control": control}
+
+
+def _seed_int(v) -> bool:
+    """An integer seed >= 0 (not a bool)."""
+    return isinstance(v, (int, np.integer)) and not isinstance(v, (bool, np.bool_)) and v >= 0
+
+
 def _real(v) -> bool:
     """A finite real number (not a bool, not a string)."""
     return isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(
@@ -225,9 +250,18 @@ class ReachBatch:
     distance beyond ``2 x robot.reach`` raises at construction, one not met after the redraws
     raises ``ValueError`` at reset (it is never silently relaxed).
 
-    Randomness: one ``numpy.random.Generator`` per robot (``rngs``), so robot ``i`` of a batch
-    seeded with ``seed`` behaves as a single environment seeded with the ``i``-th child of
-    ``SeedSequence(seed)``.
+    Randomness, one rule for every face: robot ``i`` has its own episode generator
+    (``np_randoms[i]``, what ``np_random`` is to a ``gymnasium.Env``); :meth:`seed` with an
+    integer ``s`` seeds it as ``gymnasium.utils.seeding.np_random(s + i)``, Gymnasium's
+    ``SyncVectorEnv`` and SB3's ``DummyVecEnv`` convention, and each reset of robot ``i``
+    samples its start and goal from a generator drawn from ``np_randoms[i]`` exactly as
+    :class:`envs.CTRReachEnv` draws one from its ``np_random``. So robot ``i`` of a batch
+    seeded with ``s`` runs the episodes of ``gym.make(id).reset(seed=s + i)`` and its later
+    resets (up to solver round-off).
+
+    User goals: ``reset(idx, goal=...)`` takes the goals [m] instead of sampling them (checked
+    by :meth:`check_goal`); their actuation preimage is unknown, so :meth:`travel_steps` is NaN
+    for them. Stepping a robot that was never reset raises ``gymnasium.error.ResetNeeded``.
     """
 
     GOAL_DRAWS = 20
@@ -245,7 +279,11 @@ class ReachBatch:
         self.goal_actuation = np.zeros((batch_size, 2 * robot.n_tubes))  # one preimage of goal
         self.prev_action = np.zeros((batch_size, 2 * self.N))
         self.snap_flag = np.zeros(batch_size)   # 1 after a penalized snap (achieved_goal[3])
-        self.rngs = [np.random.default_rng(s) for s in np.random.SeedSequence().spawn(batch_size)]
+        # per robot: the episode generator (an env's np_random) and the one the current
+        # episode samples from (drawn from the former at each reset)
+        self.np_randoms = [seeding.np_random()[0] for _ in range(batch_size)]
+        self.rngs = [np.random.default_rng(g.integers(2**63)) for g in self.np_randoms]
+        self.ready = np.zeros(batch_size, dtype=bool)   # reset at least once
         N = self.N
         # where (goal - tip) / reach starts: after the actuation, forces, action, velocity and
         # tip entries (the two goal-relative entries, 6 values, follow; relabel_observation)
@@ -272,9 +310,58 @@ class ReachBatch:
                 f"goal is more than 2 x reach = {2.0 * robot.reach:.4g} m from the start")
 
     # -- seeding and sampling -------------------------------------------------------------------
-    def seed(self, seed: int | None) -> None:
-        children = np.random.SeedSequence(seed).spawn(self.B)
-        self.rngs = [np.random.default_rng(s) for s in children]
+    def seed(self, seed, idx=None) -> None:
+        """Seed the episode generators of robots ``idx`` (default: all): an integer ``s`` gives
+        robot ``i`` the seed ``s + i`` (``gymnasium.utils.seeding.np_random(s + i)``, as
+        ``SyncVectorEnv`` and SB3's ``DummyVecEnv`` seed their sub-environments); a sequence
+        gives one seed (an integer >= 0 or ``None``) per robot of the batch; ``None`` (or a
+        ``None`` entry) leaves a generator as it is (Gymnasium's ``reset(seed=None)``)."""
+        idx = np.arange(self.B) if idx is None else np.asarray(idx, dtype=int)
+        if seed is None:
+            return
+        if _seed_int(seed):
+            seeds = [int(seed) + i for i in range(self.B)]
+        elif isinstance(seed, (list, tuple, np.ndarray)):
+            seeds = list(seed)
+            if len(seeds) != self.B:
+                raise ValueError(f"seed as a list must have one entry per robot (num_envs = "
+                                 f"{self.B}), got length {len(seeds)}")
+        else:
+            raise ValueError(f"seed must be an integer >= 0, a list of num_envs = {self.B} "
+                             f"such seeds (or None entries), or None; got {seed!r}")
+        for i, s in enumerate(seeds):
+            if not (s is None or _seed_int(s)):
+                raise ValueError(f"seed must be an integer >= 0 or None, got {s!r} for robot "
+                                 f"{i}")
+        for i in idx:
+            if seeds[i] is not None:
+                self.np_randoms[i] = seeding.np_random(int(seeds[i]))[0]
+
+    def check_goal(self, goal, n: int) -> np.ndarray:
+        """A user goal (``reset(options={"goal": ...})``) as ``(n, 3)`` float64 [m]: one
+        position ``(3,)`` for all ``n`` robots or one per robot ``(n, 3)``, in the base frame
+        (origin at the orifice), finite and within ``2 x robot.reach`` of the orifice (the
+        goal space; whether the tip can reach it is not checked). Raises ``ValueError``."""
+        g = np.asarray(goal)
+        if g.dtype == object or not (np.issubdtype(g.dtype, np.floating)
+                                     or np.issubdtype(g.dtype, np.integer)):
+            raise ValueError(f"options['goal'] must be a real 3-vector [m] (or one per robot, "
+                             f"({n}, 3)), got {goal!r}")
+        g = g.astype(np.float64)
+        if g.shape == (3,):
+            g = np.broadcast_to(g, (n, 3)).copy()
+        if g.shape != (n, 3):
+            raise ValueError(f"options['goal'] must have shape (3,) or ({n}, 3) (a position "
+                             f"[m] in the base frame), got shape {np.shape(goal)}")
+        if not np.isfinite(g).all():
+            raise ValueError(f"options['goal'] must be finite, got {goal!r}")
+        limit = 2.0 * self.robot.reach
+        far = np.linalg.norm(g, axis=-1) > limit
+        if far.any():
+            raise ValueError(f"options['goal'] must lie within 2 x reach = {limit:.4g} m of the "
+                             f"orifice (the base frame's origin), got {g[far][0].tolist()} at "
+                             f"{float(np.linalg.norm(g[far][0])):.4g} m")
+        return g
 
     def sample_stable(self, idx: np.ndarray, per_robot: int = 2, max_rounds: int = 10):
         """For each robot in ``idx``, ``per_robot`` stable, converged equilibria sampled
@@ -309,16 +396,51 @@ class ReachBatch:
                                f"{sorted({int(idx[i]) for i, _ in need})} in {max_rounds} rounds")
         return xs, tips, first_eq, first_rows
 
-    def reset(self, idx: np.ndarray) -> None:
-        """New start state (at rest) and goal for robots ``idx``."""
+    RESET_OPTIONS = ("goal", "tolerance")
+
+    def reset_options(self, options, n: int, extra: tuple[str, ...] = ()):
+        """Check ``reset(options=...)`` for ``n`` robots before anything changes: returns
+        ``(tolerance or None, goal (n, 3) or None)``. Known keys: ``"goal"`` (a position [m],
+        see :meth:`check_goal`), ``"tolerance"`` (the success radius [m] from now on, as
+        :meth:`set_tolerance`) and the face's ``extra`` keys; any other key raises
+        ``ValueError`` naming it (a misspelt option is never silently ignored)."""
+        if options is None:
+            return None, None
+        if not isinstance(options, dict):
+            raise ValueError(f"options must be a dict or None, got {type(options).__name__}")
+        known = self.RESET_OPTIONS + tuple(extra)
+        unknown = [k for k in options if k not in known]
+        if unknown:
+            raise ValueError(f"unknown reset option(s) {unknown}: the options are "
+                             f"{list(known)}")
+        tol = options.get("tolerance")
+        if tol is not None:
+            _check_tolerance(tol)
+        goal = options.get("goal")
+        return tol, (None if goal is None else self.check_goal(goal, n))
+
+    def reset(self, idx: np.ndarray, goal=None) -> None:
+        """New start state (at rest) and goal for robots ``idx``: each draws its sampling
+        generator from its episode generator (``np_randoms``), then samples a stable start and
+        (without ``goal``) a goal; ``goal`` (``(3,)`` or ``(len(idx), 3)`` [m], see
+        :meth:`check_goal`) replaces the sampled goal (``goal_min_distance`` does not apply;
+        the start is the one the same generator gives without it)."""
         idx = np.asarray(idx, dtype=int)
         if len(idx) == 0:
             return
+        user_goal = None if goal is None else self.check_goal(goal, len(idx))
+        for i in idx:
+            self.rngs[i] = np.random.default_rng(self.np_randoms[i].integers(2**63))
+        # two samples either way, so that a user goal keeps the start the seed gives
         xs, tips, eqs, rows = self.sample_stable(idx, per_robot=2)
-        # start = sample 0, goal = tip of sample 1 (resampled while too close to the start)
-        goal = tips[:, 1]
-        goal_x = xs[:, 1]
-        close = np.linalg.norm(goal - tips[:, 0], axis=-1) < self.config.goal_min_distance
+        if user_goal is not None:
+            goal, goal_x = user_goal, np.full((len(idx), 2 * self.N), np.nan)
+            close = np.zeros(len(idx), dtype=bool)
+        else:
+            # start = sample 0, goal = tip of sample 1 (resampled while too close to the start)
+            goal = tips[:, 1]
+            goal_x = xs[:, 1]
+            close = np.linalg.norm(goal - tips[:, 0], axis=-1) < self.config.goal_min_distance
         for i in np.flatnonzero(close):
             farthest = float(np.linalg.norm(goal[i] - tips[i, 0]))
             for _ in range(self.GOAL_DRAWS):
@@ -345,6 +467,28 @@ class ReachBatch:
         self.goal_actuation[idx] = goal_x
         self.prev_action[idx] = 0.0
         self.snap_flag[idx] = 0.0
+        self.ready[idx] = True
+
+    def reset_info(self, i: int) -> dict:
+        """The ``info`` of a reset of robot ``i`` (every face: the single env's ``reset``,
+        the vector faces after a reset or an autoreset)."""
+        d = float(np.linalg.norm(self.robots.tip[i] - self.goal[i]))
+        return {"is_success": bool(self._goal_distance32()[i] <= self.tolerance), "distance": d,
+                "snapped": False, "solver_failure": False}
+
+    @staticmethod
+    def info_of(infos: dict[str, np.ndarray], i: int) -> dict:
+        """Robot ``i``'s entry of :meth:`step`'s batched ``infos`` as a single env's ``info``:
+        Python scalars for per-robot scalars, array copies for per-robot vectors."""
+        return {k: (v[i].copy() if v.ndim > 1 else v[i].item()) for k, v in infos.items()}
+
+    def _goal_distance32(self) -> np.ndarray:
+        """``(B,)`` distance from the float32 goals of the observation (what
+        ``compute_reward`` sees), so that the step reward, ``is_success`` and
+        ``compute_reward(achieved_goal, desired_goal)`` agree to the bit."""
+        tip = self.robots.tip.astype(np.float32).astype(np.float64)
+        goal = self.goal.astype(np.float32).astype(np.float64)
+        return np.linalg.norm(tip - goal, axis=-1)
 
     def travel_steps(self, idx=None) -> np.ndarray:
         """Control periods the carriages need, at their full-scale speeds, to move from the
@@ -352,7 +496,8 @@ class ReachBatch:
         bound on the time to reach the goal that way (``(B,)``). Optimistic as a measure of
         what is reachable: an insertion against the elastic load is slower, and the wrapped
         rotation may pass +-180 deg (``benchmarks/reach_ceiling.py`` searches the whole
-        solution set with loaded speeds)."""
+        solution set with loaded speeds). NaN for a user goal (``options["goal"]``: no
+        preimage was sampled)."""
         idx = np.arange(self.B) if idx is None else idx
         d = self.goal_actuation[idx] - self.robots.x[idx]
         d[:, self.N:] = np.angle(np.exp(1j * d[:, self.N:]))
@@ -386,6 +531,10 @@ class ReachBatch:
     def step(self, action: np.ndarray):
         """Apply ``action (B, 2N)`` in ``[-1, 1]`` (see :meth:`check_action`); returns
         ``(reward, terminated, truncated, infos)`` with ``infos`` a dict of ``(B,)`` arrays."""
+        if not self.ready.all():
+            never = np.flatnonzero(~self.ready).tolist()
+            raise ResetNeeded(f"step() before reset(): call reset() first (robot(s) {never} of "
+                              f"{self.B} have no episode yet)")
         a = self.check_action(action, (self.B, 2 * self.N))
         tip0 = self.robots.tip.copy()
         if self.config.control == "force":
@@ -405,10 +554,14 @@ class ReachBatch:
         d = np.linalg.norm(self.robots.tip - self.goal, axis=-1)
         snap_term = snapped & (self.config.snap_mode == "terminate")
         self.snap_flag = snap_term.astype(np.float64)
-        reward = compute_reward(self.robots.tip, self.goal, self.tolerance, self.config.reward,
-                                self.config.dense_scale, snap_term, self.config.snap_penalty)
+        # the reward from the float32 goals of the observation, the values compute_reward
+        # gets back from a replay buffer (float64 goals differ in the 8th digit)
+        reward = compute_reward(self.robots.tip.astype(np.float32),
+                                self.goal.astype(np.float32), self.tolerance,
+                                self.config.reward, self.config.dense_scale, snap_term,
+                                self.config.snap_penalty)
         infos = {
-            "is_success": d <= self.tolerance,
+            "is_success": self._goal_distance32() <= self.tolerance,
             "distance": d,
             "snapped": snapped,
             "snap_terminated": snap_term,
@@ -484,6 +637,10 @@ class ReachBatch:
                           control_period=float(self.carriage.control_period))
 
     def set_tolerance(self, tolerance: float) -> None:
-        if not (tolerance > 0 and math.isfinite(tolerance)):
-            raise ValueError(f"tolerance must be a positive length [m], got {tolerance!r}")
+        _check_tolerance(tolerance)
         self.tolerance = float(tolerance)
+
+
+def _check_tolerance(tolerance) -> None:
+    if not (_real(tolerance) and tolerance > 0):
+        raise ValueError(f"tolerance must be a positive length [m], got {tolerance!r}")

@@ -3,9 +3,13 @@ call per substep (instead of ``B`` sequential single-robot solves in a ``DummyVe
 
 Semantics follow SB3's ``VecEnv`` contract: ``step`` returns ``(obs, rewards, dones, infos)``,
 a finished robot is reset in the same step, its ``info`` holds ``terminal_observation`` and
-``TimeLimit.truncated``; seeds given through ``seed()`` are used at the next ``reset()``.
-Robot ``i`` draws from the ``i``-th child of ``SeedSequence(seed)``, so the batch reproduces
-``B`` single environments seeded that way (up to solver round-off).
+``TimeLimit.truncated`` (``reset_infos`` the reset's info); seeds given through ``seed()`` and
+options through ``set_options()`` are used at the next ``reset()``. Seeding is SB3's own
+(``VecEnv.seed``): ``seed(s)`` gives robot ``i`` the seed ``s + i``, so the batch reproduces a
+``DummyVecEnv`` of single environments seeded ``s`` (robot ``i`` = ``gym.make(id)`` reset with
+seed ``s + i``, then its autoresets), the same rule as the Gymnasium vector env, up to solver
+round-off. Options: ``"goal"`` (``(3,)`` [m], that robot's goal for the next episode),
+``"tolerance"``; any other key raises ``ValueError``.
 """
 
 from __future__ import annotations
@@ -13,6 +17,7 @@ from __future__ import annotations
 from typing import Any
 
 import numpy as np
+from gymnasium.error import ResetNeeded
 from stable_baselines3.common.vec_env.base_vec_env import VecEnv
 
 from torchpvs import Scene
@@ -43,25 +48,25 @@ class CTRReachVecEnv(VecEnv):
 
     # -- VecEnv API ---------------------------------------------------------------------------
     def reset(self):
-        if self._seeds and self._seeds[0] is not None:
-            self.task.seed(self._seeds[0])
-        for opt in self._options:
-            if opt and "tolerance" in opt:
-                self.task.set_tolerance(opt["tolerance"])
+        parsed = [self.task.reset_options(opt or None, 1) for opt in self._options]
+        self.task.seed(list(self._seeds))
+        for tol, _ in parsed:
+            if tol is not None:
+                self.task.set_tolerance(tol)
         self._reset_seeds()
         self._reset_options()
-        self.task.reset(np.arange(self.num_envs))
+        user = np.array([g is not None for _, g in parsed], dtype=bool)
+        self.task.reset(np.flatnonzero(~user))
+        if user.any():
+            self.task.reset(np.flatnonzero(user),
+                            goal=np.concatenate([g for _, g in parsed if g is not None]))
         self.elapsed[:] = 0
-        self.reset_infos = [{} for _ in range(self.num_envs)]
+        self.reset_infos = [self.task.reset_info(i) for i in range(self.num_envs)]
         return self.task.observations()
 
-    def seed(self, seed: int | None = None):
-        """Seed robot ``i`` with the ``i``-th child of ``SeedSequence(seed)`` at the next
-        reset (SB3 convention: used up by the next ``reset()``)."""
-        self._seeds = [seed] * self.num_envs
-        return [seed] * self.num_envs
-
     def step_async(self, actions: np.ndarray) -> None:
+        if not self.task.ready.all():
+            raise ResetNeeded("CTRReachVecEnv.step() before reset(): call reset() first")
         self._actions = self.task.check_action(actions, (self.num_envs, *self.action_space.shape))
 
     def step_wait(self):
@@ -73,7 +78,7 @@ class CTRReachVecEnv(VecEnv):
         obs = self.task.observations()
         info_list = []
         for i in range(self.num_envs):
-            info = {k: (v[i].copy() if v.ndim > 1 else v[i].item()) for k, v in infos.items()}
+            info = self.task.info_of(infos, i)
             info["TimeLimit.truncated"] = bool(truncated[i] and not terminated[i])
             if dones[i]:
                 info["terminal_observation"] = {k: v[i].copy() for k, v in obs.items()}
@@ -83,6 +88,8 @@ class CTRReachVecEnv(VecEnv):
             self.task.reset(done_idx)
             self.elapsed[done_idx] = 0
             obs = self.task.observations()
+            for i in done_idx:
+                self.reset_infos[i] = self.task.reset_info(i)
         return obs, reward, dones, info_list
 
     def close(self) -> None:

@@ -6,12 +6,27 @@ returns it (both registered ids declare it as their ``vector_entry_point``). It 
 core (:class:`envs.task.ReachBatch`) with the single env and with the Stable-Baselines3 adapter
 (:class:`envs.vec_env.CTRReachVecEnv`), and needs only Gymnasium.
 
-Autoreset: ``AutoresetMode.SAME_STEP`` (declared in ``metadata``): a robot whose episode ends is
-reset within the step; the returned observation is the reset one, and ``infos["final_obs"]``
-(an object array, masked by ``infos["_final_obs"]``) and ``infos["final_info"]`` hold the last
-observation and info of the finished episode. Infos are Gymnasium's vector format: one array per
-key with a boolean mask ``"_key"``. Seeding: ``reset(seed=s)`` gives robot ``i`` the ``i``-th
-child of ``SeedSequence(s)`` (the batch reproduces ``B`` single environments seeded that way).
+Gymnasium's vector contract, exactly as ``SyncVectorEnv`` of the single env with
+``autoreset_mode=SAME_STEP`` (``tests/envs/test_vector.py`` compares them key by key):
+
+* Autoreset: ``AutoresetMode.SAME_STEP`` (declared in ``metadata``): a robot whose episode ends
+  is reset within the step and the returned observation is the reset one.
+* Infos: a dict of arrays, one per key, each with a boolean mask ``"_key"`` (built with
+  ``VectorEnv._add_info``, robot by robot, as ``SyncVectorEnv`` does). A robot that did not
+  finish contributes its step ``info``; a robot that finished contributes its RESET info
+  (``is_success``, ``distance``, ``snapped``, ``solver_failure`` of the new episode's start)
+  at the top level, and its last step's info under ``infos["final_info"]`` (itself a dict of
+  arrays with ``_key`` masks, ``infos["_final_info"]`` marking the finished robots) and its last
+  observation in ``infos["final_obs"]`` (an object array of observation dicts, masked by
+  ``infos["_final_obs"]``). ``reset`` returns the reset infos in the same format.
+* Seeding: ``reset(seed=s)`` seeds robot ``i`` with ``s + i`` (a list gives one seed per robot,
+  ``None`` keeps the generators), so robot ``i`` runs the episodes of
+  ``gym.make(id).reset(seed=s + i)`` and of ``SyncVectorEnv``'s sub-env ``i`` (up to solver
+  round-off: batched and single solves stop at different iterations).
+* ``reset(options=...)``: ``"reset_mask"`` (a ``(num_envs,)`` bool array: reset only those
+  robots, checked as ``SyncVectorEnv`` checks it), ``"goal"`` (``(3,)`` for every robot reset or
+  ``(num_envs, 3)``, see :meth:`envs.task.ReachBatch.check_goal`), ``"tolerance"``; any other key
+  raises ``ValueError``.
 """
 
 from __future__ import annotations
@@ -27,9 +42,9 @@ from torchpvs import Scene
 
 from .dynamics import CarriageModel
 from .robots import Robot, make_robot
-from .task import ReachBatch, ReachConfig, RobotState, her_reward
+from .task import ReachBatch, ReachConfig, RobotState, her_reward, registered_kwargs
 
-__all__ = ["CTRReachVectorEnv", "build_batch"]
+__all__ = ["CTRReachVectorEnv", "build_batch", "make_force_vector_env", "make_joint_vector_env"]
 
 
 def build_batch(num_envs: int, robot: str | Robot | Scene, control: str,
@@ -74,40 +89,68 @@ class CTRReachVectorEnv(gym.vector.VectorEnv):
         self.elapsed = np.zeros(num_envs, dtype=int)
         self._renderer = None
 
-    def reset(self, *, seed: int | None = None, options: dict | None = None):
-        super().reset(seed=seed)
-        if seed is not None:
-            self.task.seed(seed)
-        if options and "tolerance" in options:
-            self.task.set_tolerance(options["tolerance"])
-        self.task.reset(np.arange(self.num_envs))
-        self.elapsed[:] = 0
-        return self._obs(), {}
+    def reset(self, *, seed: int | list | None = None, options: dict | None = None):
+        if options is not None and not isinstance(options, dict):
+            raise ValueError(f"options must be a dict or None, got {type(options).__name__}")
+        mask = None
+        if options is not None and "reset_mask" in options:
+            mask = options["reset_mask"]
+            if not isinstance(mask, np.ndarray):
+                raise TypeError(f"`options['reset_mask']` must be a numpy array, got "
+                                f"{type(mask)}")
+            if mask.shape != (self.num_envs,):
+                raise ValueError(f"`options['reset_mask']` must have shape "
+                                 f"`({self.num_envs},)`, got {mask.shape}")
+            if mask.dtype != np.bool_:
+                raise TypeError(f"`options['reset_mask']` must have `dtype=np.bool_`, got "
+                                f"{mask.dtype}")
+            if not mask.any():
+                raise ValueError(f"`options['reset_mask']` must contain a boolean array with at "
+                                 f"least one True value, got reset_mask={mask}")
+        idx = np.arange(self.num_envs) if mask is None else np.flatnonzero(mask)
+        opts = None if options is None else dict(options)
+        if opts and opts.get("goal") is not None and np.shape(opts["goal"]) == (
+                self.num_envs, 3):
+            opts["goal"] = np.asarray(opts["goal"])[idx]   # one goal per robot: those reset
+        tol, goal = self.task.reset_options(opts, len(idx), extra=("reset_mask",))
+        self.task.seed(seed, idx)                  # checks the seeds first
+        if isinstance(seed, (int, np.integer)) and not isinstance(seed, bool):
+            super().reset(seed=int(seed))
+        if tol is not None:
+            self.task.set_tolerance(tol)
+        self.task.reset(idx, goal=goal)
+        self.elapsed[idx] = 0
+        infos: dict[str, Any] = {}
+        for i in idx:
+            infos = self._add_info(infos, self.task.reset_info(i), int(i))
+        return self._obs(), infos
 
     def step(self, actions):
+        if not self.task.ready.all():
+            raise gym.error.ResetNeeded("CTRReachVectorEnv.step() before reset(): call "
+                                        "reset() first")
         actions = self.task.check_action(actions, (self.num_envs, *self.single_action_space.shape))
         reward, terminated, truncated, infos = self.task.step(actions)
         self.elapsed += 1
         truncated = truncated | (self.elapsed >= self.max_episode_steps)
         obs = self._obs()
-        info: dict[str, Any] = {}
-        for key, value in infos.items():
-            info[key] = value
-            info[f"_{key}"] = np.ones(self.num_envs, dtype=bool)
         done = terminated | truncated
+        final_obs = obs
         if done.any():
             idx = np.flatnonzero(done)
-            final_obs = np.full(self.num_envs, None, dtype=object)
-            final_info = np.full(self.num_envs, None, dtype=object)
-            for i in idx:
-                final_obs[i] = {k: v[i].copy() for k, v in obs.items()}
-                final_info[i] = {k: (v[i].copy() if np.ndim(v) > 1 else v[i].item())
-                                 for k, v in infos.items()}
-            info["final_obs"], info["_final_obs"] = final_obs, done.copy()
-            info["final_info"], info["_final_info"] = final_info, done.copy()
             self.task.reset(idx)
             self.elapsed[idx] = 0
             obs = self._obs()
+        # SyncVectorEnv's infos, robot by robot (same keys, masks, dtypes and order)
+        info: dict[str, Any] = {}
+        for i in range(self.num_envs):
+            if done[i]:
+                info = self._add_info(info, {
+                    "final_obs": {k: v[i].copy() for k, v in final_obs.items()},
+                    "final_info": self.task.info_of(infos, i)}, i)
+                info = self._add_info(info, self.task.reset_info(i), i)
+            else:
+                info = self._add_info(info, self.task.info_of(infos, i), i)
         return (obs, np.asarray(reward, dtype=np.float64), np.asarray(terminated, dtype=bool),
                 np.asarray(truncated, dtype=bool), info)
 
@@ -140,3 +183,15 @@ class CTRReachVectorEnv(gym.vector.VectorEnv):
         if self._renderer is not None:
             self._renderer.close()
             self._renderer = None
+
+
+# -- the registered ids' vector entry points: the id fixes the control ---------------------
+def make_force_vector_env(**kwargs: Any) -> CTRReachVectorEnv:
+    """``gym.make_vec("torchpvs/CTRReachForce-v0", vectorization_mode="vector_entry_point")``
+    (a ``control=`` naming another control raises ``ValueError``)."""
+    return CTRReachVectorEnv(**registered_kwargs("force", kwargs))
+
+
+def make_joint_vector_env(**kwargs: Any) -> CTRReachVectorEnv:
+    """``gym.make_vec("torchpvs/CTRReachJoint-v0", vectorization_mode="vector_entry_point")``."""
+    return CTRReachVectorEnv(**registered_kwargs("joint", kwargs))

@@ -45,8 +45,11 @@ TASK_NOT_POLICY = ("reward", "dense_scale", "tolerance", "snap_penalty", "snap_m
 def rollout(policy, venv, n_episodes: int, seed: int = 12345, progress: bool = True,
             keep_traces: int = 4) -> dict[str, np.ndarray]:
     """Run ``n_episodes`` full episodes (``venv.max_episode_steps`` steps each, no early stop)
-    in batches of ``venv.num_envs``. Episodes are seeded by ``seed`` and their batch index, so
-    every policy meets the same starts and goals. Returns per-episode arrays and traces."""
+    in batches of ``venv.num_envs``. Episode ``k`` is seeded ``seed + k`` (batch ``b`` is
+    ``venv.seed(seed + b * num_envs)``, whose robot ``i`` gets ``seed + b * num_envs + i``: the
+    start and goal of ``gym.make(id).reset(seed=seed + k)``), so every policy meets the same
+    starts and goals and no two episodes share a seed. Returns per-episode arrays and
+    traces."""
     B, T = venv.num_envs, venv.max_episode_steps
     n_batches = -(-n_episodes // B)
     keys = ("final_error", "first_hit", "settle", "effort", "peak_tau", "saturation", "snap",
@@ -62,7 +65,7 @@ def rollout(policy, venv, n_episodes: int, seed: int = 12345, progress: bool = T
         except ImportError:  # pragma: no cover
             bar = None
     for b in range(n_batches):
-        venv.seed(seed + b)
+        venv.seed(seed + b * B)
         obs = venv.reset()
         venv.elapsed[:] = 0
         dist = np.zeros((T, B))

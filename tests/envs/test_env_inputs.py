@@ -255,7 +255,7 @@ def _merit_rollout(seed: int, control_period: float, tau_frac, B: int = 4,
 
 
 @pytest.mark.parametrize(("seed", "period", "tau"), [
-    (4, 0.1, [0, 0, 0, 0]),      # 8.6e-4 J per step of rise before (issue 14, item 9)
+    (4, 0.1, [0, 0, 0, 0]),      # 8.6e-4 J per step of rise before the Armijo acceptance
     (4, 0.05, [0, 0, 0, 0]),
     (1, 0.1, [0.2, -0.1, 0.0, 0.3]),
     (7, 0.1, [-0.3, 0.3, 0.5, -0.5]),
@@ -276,3 +276,131 @@ def test_the_energy_test_adds_no_solves_where_the_first_step_is_accepted():
     phi, solves, substeps = _merit_rollout(2, 0.1, [0.05, 0.05, 0.0, 0.0], B=2, seconds=0.5)
     assert np.diff(phi, axis=0).max() <= 0.0
     assert solves == substeps
+
+
+# ---------------------------------------------------------------------------------------------
+# Issue 27, item 8: the ids fix the control, unknown robots list the env robots, step before
+# reset says "call reset() first", reset options: a validated user goal, unknown keys refused
+
+FORCE_ID, JOINT_ID = "torchpvs/CTRReachForce-v0", "torchpvs/CTRReachJoint-v0"
+
+
+@pytest.mark.parametrize("make", ["make", "vector_entry_point", "sync"])
+def test_a_control_that_contradicts_the_id_is_refused(make):
+    def build(env_id, **kw):
+        if make == "make":
+            return gym.make(env_id, **kw)
+        return gym.make_vec(env_id, num_envs=2, vectorization_mode=make, **kw)
+
+    with pytest.raises(ValueError, match="control='joint' contradicts.*CTRReachForce-v0.*"
+                                         "CTRReachJoint-v0"):
+        build(FORCE_ID, control="joint")
+    with pytest.raises(ValueError, match="control='force' contradicts.*CTRReachJoint-v0"):
+        build(JOINT_ID, control="force")
+    with pytest.raises(ValueError, match="control must be one of"):
+        build(FORCE_ID, control="torque")
+    # naming the id's own control is fine
+    env = build(FORCE_ID, control="force")
+    config = env.unwrapped.config if make == "make" else env.get_attr("config")[0] \
+        if make == "sync" else env.config
+    assert config.control == "force"
+
+
+def test_an_unknown_robot_lists_the_env_robots():
+    with pytest.raises(torchpvs.SceneError, match=r"unknown robot 'bogus'.*fig3_two_tube.*"
+                                                  r"rvim_three_tube.*renda2021_fig3"):
+        CTRReachEnv(robot="bogus")
+    with pytest.raises(torchpvs.SceneError, match="rvim_three_tube"):
+        gym.make_vec(FORCE_ID, num_envs=2, vectorization_mode="vector_entry_point",
+                     robot="bogus")
+    # a scene file that does not exist keeps the scene loader's message
+    with pytest.raises(torchpvs.SceneError, match="does not exist"):
+        make_robot("no_such_scene.yaml")
+
+
+def test_step_before_reset_says_call_reset_first():
+    from gymnasium.error import ResetNeeded
+
+    from envs import CTRReachVectorEnv
+    faces = [(CTRReachEnv(), np.zeros(4, np.float32)),
+             (CTRReachVectorEnv(2), np.zeros((2, 4), np.float32)),
+             (CTRReachVecEnv(2), np.zeros((2, 4), np.float32)),
+             (gym.make(FORCE_ID), np.zeros(4, np.float32))]
+    for env, action in faces:
+        with pytest.raises(ResetNeeded, match="reset"):
+            env.step(action)
+    # a vector env whose reset_mask left a robot without an episode
+    v = CTRReachVectorEnv(2)
+    v.reset(seed=0, options={"reset_mask": np.array([True, False])})
+    with pytest.raises(ResetNeeded, match="call reset"):
+        v.task.step(np.zeros((2, 4)))
+
+
+def test_reset_takes_a_user_goal_on_every_face():
+    from envs import CTRReachVectorEnv
+    goal = np.array([0.01, -0.02, 0.12])
+    e = CTRReachEnv()
+    obs, info = e.reset(seed=1, options={"goal": goal})
+    np.testing.assert_allclose(obs["desired_goal"], [*goal, 0.0], atol=1e-7)
+    np.testing.assert_allclose(e.state().goal[0], goal)
+    assert info["distance"] == pytest.approx(np.linalg.norm(e.state().tip[0] - goal))
+    assert np.isnan(e.task.travel_steps()).all()        # no sampled preimage
+    # the next reset without the option samples again; the start is still the seed's
+    o2, _ = e.reset(seed=1)
+    assert not np.allclose(o2["desired_goal"][:3], goal)
+    np.testing.assert_array_equal(o2["achieved_goal"], obs["achieved_goal"])
+    # the vector env: one goal for all, or one per robot
+    v = CTRReachVectorEnv(2)
+    ov, _ = v.reset(seed=1, options={"goal": goal})
+    np.testing.assert_allclose(ov["desired_goal"][:, :3], [goal, goal], atol=1e-7)
+    np.testing.assert_allclose(ov["achieved_goal"][0], obs["achieved_goal"], atol=1e-6)
+    per = np.array([goal, -goal])
+    ov, _ = v.reset(options={"goal": per})
+    np.testing.assert_allclose(ov["desired_goal"][:, :3], per, atol=1e-7)
+    # the SB3 adapter: per-robot options through set_options
+    s = CTRReachVecEnv(2)
+    s.seed(1)
+    s.set_options([{"goal": goal}, {}])
+    os_ = s.reset()
+    np.testing.assert_allclose(os_["desired_goal"][0, :3], goal, atol=1e-7)
+    assert not np.allclose(os_["desired_goal"][1, :3], goal)
+    assert s.reset_infos[0]["distance"] == pytest.approx(
+        np.linalg.norm(s.state().tip[0] - goal))
+
+
+@pytest.mark.parametrize("goal,match", [
+    ([0.01, 0.02], r"shape \(3,\)"),
+    ([0.0, 0.0, np.nan], "finite"),
+    ([0.0, 0.0, 1.0], r"within 2 x reach"),
+    ("here", "real 3-vector"),
+])
+def test_a_bad_user_goal_names_the_rule(goal, match):
+    from envs import CTRReachVectorEnv
+    e = CTRReachEnv()
+    with pytest.raises(ValueError, match=match):
+        e.reset(seed=0, options={"goal": goal})
+    with pytest.raises(ValueError, match=match):
+        CTRReachVectorEnv(2).reset(seed=0, options={"goal": goal})
+    s = CTRReachVecEnv(2)
+    s.set_options({"goal": goal})
+    with pytest.raises(ValueError, match=match):
+        s.reset()
+
+
+def test_unknown_reset_options_are_refused_by_name():
+    from envs import CTRReachVectorEnv
+    e = CTRReachEnv()
+    with pytest.raises(ValueError, match=r"unknown reset option\(s\) \['gaol'\].*'goal', "
+                                         r"'tolerance'"):
+        e.reset(options={"gaol": [0.0, 0.0, 0.1]})
+    with pytest.raises(ValueError, match=r"\['speed'\].*reset_mask"):
+        CTRReachVectorEnv(2).reset(options={"speed": 1})
+    s = CTRReachVecEnv(2)
+    s.set_options({"speed": 1})
+    with pytest.raises(ValueError, match=r"\['speed'\]"):
+        s.reset()
+    with pytest.raises(ValueError, match="tolerance must be a positive length"):
+        e.reset(options={"tolerance": "1mm"})
+    # the tolerance option still works
+    e.reset(seed=0, options={"tolerance": 2e-3})
+    assert e.task.tolerance == 2e-3

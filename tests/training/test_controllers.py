@@ -249,7 +249,11 @@ def test_tip_feedback_reaches_goals_a_wrong_model_misses(model_error_runs):
     # 4 of 6 within 1 mm (the two misses: a goal whose plan is not finished within the
     # episode, far off for both, and one on its way in)
     assert (fb["final_error"] <= 1e-3).sum() >= 4, fb["final_error"]
-    assert (pol.updates > 0).all()                                # the outer loop ran
+    # the outer loop ran wherever the carriages reached their plan: it starts once they settle
+    # near the setpoint, so a goal needing more than the episode's 100 steps of travel never
+    # starts it (goal 4 of these 6 under Gymnasium's seeding rule: 104 steps at full speed)
+    finishes = fb["travel_steps"] <= 100
+    assert (pol.updates[finishes] > 0).all() and (pol.updates > 0).sum() >= 5, pol.updates
     assert not fb["snap"].any()
 
 
