@@ -187,11 +187,14 @@ class RobotBatch:
     eigenvalue), ``at_lower``/``at_upper (B, N)`` stroke-limit flags.
     """
 
-    def __init__(self, robot: Robot, model: CarriageModel, batch_size: int):
+    def __init__(self, robot: Robot, model: CarriageModel, batch_size: int, plants=None):
         if isinstance(batch_size, bool) or not isinstance(batch_size, (int, np.integer)) \
                 or batch_size < 1:
             raise ValueError(f"batch_size must be an integer >= 1, got {batch_size!r}")
         self.robot, self.model, self.B = robot, model, batch_size
+        # the robots' plants (envs.plant.Plants): per-robot tubes and tip loads, or None for
+        # the nominal robot
+        self.plants = plants
         N = robot.n_tubes
         self.N = N
         self.damping = np.concatenate([
@@ -221,8 +224,11 @@ class RobotBatch:
         self.contact_fallbacks = 0                   # contact QPs that failed (clipped instead)
 
     # ------------------------------------------------------------------------------------------
-    def _solve(self, x: np.ndarray, q0: torch.Tensor | None):
+    def _solve(self, x: np.ndarray, q0: torch.Tensor | None, idx: np.ndarray):
+        """Equilibria of robots ``idx`` at ``x`` (their own plants when they have one)."""
         self.solves += 1
+        if self.plants is not None:
+            return self.plants.solve(x, idx, initial=q0)
         return solve_batch(self.robot, x, initial=q0)
 
     @staticmethod
@@ -239,7 +245,7 @@ class RobotBatch:
         D, lo, hi = self.robot.project(x[:, :self.N])
         x = np.concatenate([D, x[:, self.N:]], -1)
         if eq is None:
-            eq, rows = self._solve(x, None), np.arange(len(idx))
+            eq, rows = self._solve(x, None, idx), np.arange(len(idx))
         g, tip, margin, twist, energy, ok = self._unpack(eq)
         q = eq.q.detach()
         if self.q is None or self.q.shape[-1] != q.shape[-1]:
@@ -444,7 +450,7 @@ class RobotBatch:
                 first[todo] = x
                 if len(todo) == 0:
                     break
-            eq = self._solve(x, self.q[torch.as_tensor(todo)])
+            eq = self._solve(x, self.q[torch.as_tensor(todo)], todo)
             g, tip, margin, twist, energy, converged = self._unpack(eq)
             ok = converged.copy()
             if accept is not None and ok.any():

@@ -48,7 +48,8 @@ from gymnasium.error import ResetNeeded
 from gymnasium.utils import seeding
 
 from .dynamics import CarriageModel, RobotBatch
-from .robots import Robot, solve_batch
+from .plant import Plants, PlantVariation
+from .robots import Robot
 
 __all__ = ["ReachConfig", "ReachBatch", "RobotState", "OBS_BOUND", "compute_reward",
            "her_reward"]
@@ -87,6 +88,13 @@ class ReachConfig:
             ``action_scale``, ``info["tau"]`` the applied total.
         error_scale: [m] length of the squashed error entry of the observation (> 0,
             default 10 mm).
+        plant_scale, tip_force, tip_noise: how each episode's plant differs from the
+            nominal robot (:class:`envs.plant.PlantVariation`; all 0 by default: the plant
+            is the robot): each tube's precurvature, ``E`` and ``G`` scaled by
+            ``U(1 - plant_scale, 1 + plant_scale)``, an unknown constant tip force of
+            ``U(0, tip_force)`` [N] in a uniformly random direction, Gaussian noise of
+            ``tip_noise`` [m] per axis on the measured tip (observation, ``achieved_goal``
+            and the reward; ``is_success`` and ``info["distance"]`` use the true tip).
     """
 
     control: str = "force"
@@ -99,8 +107,16 @@ class ReachConfig:
     goal_min_distance: float = 2e-3
     compensation: bool = False
     error_scale: float = 0.01
+    plant_scale: float = 0.0
+    tip_force: float = 0.0
+    tip_noise: float = 0.0
+
+    @property
+    def plant(self) -> PlantVariation:
+        return PlantVariation(self.plant_scale, self.tip_force, self.tip_noise)
 
     def __post_init__(self) -> None:
+        self.plant  # noqa: B018 - validates the three plant fields by name
         if self.control not in ("force", "joint"):
             raise ValueError(f"control must be 'force' or 'joint', got {self.control!r}")
         if self.reward not in ("sparse", "dense"):
@@ -158,6 +174,12 @@ class RobotState:
         action_scale: ``(2N,)`` [N, N·m] force/torque at action ``+-1`` (``tau = a * scale``
             for raw force actions).
         control_period: [s] time per environment step.
+        true_tip: ``(B, 3)`` [m] the true tip (``tip`` is the measured one; they differ with
+            ``tip_noise``): for analysis, not for controllers.
+        plant_factors: ``(B, 3, N)`` the plant's factors on each tube's precurvature, ``E``
+            and ``G`` against the nominal robot (``env.robot``, what controllers know); ones
+            without ``plant_scale``. For analysis.
+        plant_tip_force: ``(B, 3)`` [N] the plant's unknown tip force. For analysis.
     """
 
     x: np.ndarray
@@ -170,6 +192,9 @@ class RobotState:
     damping: np.ndarray
     action_scale: np.ndarray
     control_period: float
+    true_tip: np.ndarray | None = None
+    plant_factors: np.ndarray | None = None
+    plant_tip_force: np.ndarray | None = None
 
 
 ENV_ID_OF_CONTROL = {"force": "torchpvs/CTRReachForce-v0", "joint": "torchpvs/CTRReachJoint-v0"}
@@ -273,7 +298,9 @@ class ReachBatch:
             raise ValueError(f"batch_size must be an integer >= 1, got {batch_size!r}")
         self.robot, self.config, self.carriage = robot, config, carriage
         self.B, self.N = batch_size, robot.n_tubes
-        self.robots = RobotBatch(robot, carriage, batch_size)
+        self.plants = Plants(robot, config.plant, batch_size)
+        self.robots = RobotBatch(robot, carriage, batch_size, plants=self.plants)
+        self.measured_tip = np.zeros((batch_size, 3))   # tip + measurement noise
         self.tolerance = config.tolerance
         self.goal = np.zeros((batch_size, 3))
         self.goal_actuation = np.zeros((batch_size, 2 * robot.n_tubes))  # one preimage of goal
@@ -378,7 +405,7 @@ class ReachBatch:
                 break
             cand = np.stack([self.robot.sample_actuation(self.rngs[idx[i]], 1)[0]
                              for i, _ in need])
-            eq = solve_batch(self.robot, cand)
+            eq = self.plants.solve(cand, idx[[i for i, _ in need]])
             self.robots.solves += 1
             ok = (eq.converged & eq.stable).numpy()
             tip = eq.tip_position.numpy()
@@ -431,6 +458,7 @@ class ReachBatch:
         user_goal = None if goal is None else self.check_goal(goal, len(idx))
         for i in idx:
             self.rngs[i] = np.random.default_rng(self.np_randoms[i].integers(2**63))
+        self.plants.draw(idx, self.rngs)
         # two samples either way, so that a user goal keeps the start the seed gives
         xs, tips, eqs, rows = self.sample_stable(idx, per_robot=2)
         if user_goal is not None:
@@ -468,6 +496,16 @@ class ReachBatch:
         self.prev_action[idx] = 0.0
         self.snap_flag[idx] = 0.0
         self.ready[idx] = True
+        self._measure(idx)
+
+    def _measure(self, idx) -> None:
+        """The measured tip of robots ``idx``: the true tip plus ``tip_noise`` per axis, from
+        each robot's episode generator."""
+        idx = np.asarray(idx, dtype=int)
+        self.measured_tip[idx] = self.robots.tip[idx]
+        sd = self.config.tip_noise
+        if sd > 0:
+            self.measured_tip[idx] += np.stack([self.rngs[i].normal(0.0, sd, 3) for i in idx])
 
     def reset_info(self, i: int) -> dict:
         """The ``info`` of a reset of robot ``i`` (every face: the single env's ``reset``,
@@ -554,9 +592,10 @@ class ReachBatch:
         d = np.linalg.norm(self.robots.tip - self.goal, axis=-1)
         snap_term = snapped & (self.config.snap_mode == "terminate")
         self.snap_flag = snap_term.astype(np.float64)
-        # the reward from the float32 goals of the observation, the values compute_reward
-        # gets back from a replay buffer (float64 goals differ in the 8th digit)
-        reward = compute_reward(self.robots.tip.astype(np.float32),
+        # the reward from the float32 goals of the observation (the measured tip), the values
+        # compute_reward gets back from a replay buffer (float64 goals differ in the 8th digit)
+        self._measure(np.arange(self.B))
+        reward = compute_reward(self.measured_tip.astype(np.float32),
                                 self.goal.astype(np.float32), self.tolerance,
                                 self.config.reward, self.config.dense_scale, snap_term,
                                 self.config.snap_penalty)
@@ -591,14 +630,15 @@ class ReachBatch:
         parts = [np.sin(alpha), np.cos(alpha), Dn, rb.g / robot.action_scale, self.prev_action]
         if self.carriage.kind == "second_order":
             parts.append(rb.v / self.speeds)
-        err = self.goal - rb.tip
-        parts += [rb.tip / robot.reach, err / robot.reach,
+        tip = self.measured_tip
+        err = self.goal - tip
+        parts += [tip / robot.reach, err / robot.reach,
                   np.tanh(err / self.config.error_scale),
                   np.tanh(rb.margin / robot.margin_scale)[:, None],
                   rb.at_lower.astype(np.float64), rb.at_upper.astype(np.float64)]
         obs = np.clip(np.nan_to_num(np.concatenate(parts, -1), nan=0.0), -OBS_BOUND, OBS_BOUND)
         return {"observation": obs.astype(np.float32),
-                "achieved_goal": np.concatenate([rb.tip, self.snap_flag[:, None]],
+                "achieved_goal": np.concatenate([tip, self.snap_flag[:, None]],
                                                 -1).astype(np.float32),
                 "desired_goal": np.concatenate([self.goal, np.zeros((self.B, 1))],
                                                -1).astype(np.float32)}
@@ -630,11 +670,13 @@ class ReachBatch:
         """The robots' state as a :class:`RobotState` of copies (``(B, ...)`` arrays)."""
         rb = self.robots
         q = np.zeros((self.B, 0)) if rb.q is None else rb.q.detach().numpy()
-        return RobotState(x=rb.x.copy(), v=rb.v.copy(), g=rb.g.copy(), tip=rb.tip.copy(),
-                          goal=self.goal.copy(), margin=rb.margin.copy(),
-                          q=np.array(q, dtype=np.float64, copy=True),
+        return RobotState(x=rb.x.copy(), v=rb.v.copy(), g=rb.g.copy(),
+                          tip=self.measured_tip.copy(), goal=self.goal.copy(),
+                          margin=rb.margin.copy(), q=np.array(q, dtype=np.float64, copy=True),
                           damping=rb.damping.copy(), action_scale=self.robot.action_scale,
-                          control_period=float(self.carriage.control_period))
+                          control_period=float(self.carriage.control_period),
+                          true_tip=rb.tip.copy(), plant_factors=self.plants.factors.copy(),
+                          plant_tip_force=self.plants.tip_force.copy())
 
     def set_tolerance(self, tolerance: float) -> None:
         _check_tolerance(tolerance)

@@ -16,7 +16,7 @@ from typing import NamedTuple
 import torch
 
 from .mechanics import node_constants, node_fields, poly, potential, sum_dim, tip_pose
-from .sections import build_layout
+from .sections import build_layout, tube_rows
 
 __all__ = ["closed_form_partials", "envelope_forces", "envelope_forces_autograd",
            "envelope_forces_closed_form", "equilibrium_forces", "paper_actuation",
@@ -44,6 +44,9 @@ def envelope_forces_autograd(tubes, res):
     # autograd cannot save (clones made outside it are ordinary).
     with torch.inference_mode(False), torch.enable_grad():
         q, F, M, loaded = (res[k].detach().clone() for k in ("q", "F", "M", "loaded"))
+        # (tube rows of a batch of robots may have been indexed in inference mode)
+        tubes = type(tubes)(**{f: getattr(tubes, f).detach().clone()
+                               for f in tubes.__dataclass_fields__})
         D = res["D"].detach().clone().requires_grad_(True)
         A = res["alpha"].detach().clone().requires_grad_(True)
         lay = build_layout(tubes, D, A, F, M, loaded, res["disc"])
@@ -390,7 +393,8 @@ def equilibrium_forces(tubes, res, resolve, delta: float = 1e-7, tol: float = 1e
     if "lay" in side:     # the sides' layout, built by the re-solve: no second build
         both["lay"] = type(res["lay"])(*(torch.cat(pair) for pair in zip(res["lay"], side["lay"],
                                                                          strict=True)))
-    allf, allt = envelope_forces(tubes, with_constants(both, "force_nodes_sides"))
+    tubes_both = tube_rows(tubes, torch.cat([torch.arange(B, device=sel.device), sel]))
+    allf, allt = envelope_forces(tubes_both, with_constants(both, "force_nodes_sides"))
     forces, torques, vals = allf[:B], allt[:B], allf[B:][torch.arange(len(sel)), sj]
     insertion = forces.clone()
     insertion[blocked] = float("nan")

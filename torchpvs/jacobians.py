@@ -20,14 +20,14 @@ passes through :mod:`torchpvs.implicit`, batched over the equilibrium's elements
 
 from __future__ import annotations
 
-from dataclasses import dataclass, fields
+from dataclasses import dataclass
 
 import torch
 
 from .forces import closed_form_partials
 from .implicit import differentiable_outputs, full_hessian
 from .mechanics import potential, skew_vee
-from .sections import TubeTensors, build_layout
+from .sections import TubeTensors, build_layout, tube_rows
 
 __all__ = ["ControlJacobians", "actuator_stiffness", "control_jacobians"]
 
@@ -94,14 +94,7 @@ def _replicated(eq, m: int, rows: torch.Tensor):
     rep = {k: v for k, v in info.items() if k not in ("H", "Hc", "cidx", "qmask_c", "_adjoint")}
     rep.update(qmask=info["qmask"][idx], loaded=info["loaded"][idx])
     inputs = tuple(ctx[k].detach()[idx] for k in ("D", "alpha", "F", "M"))
-    return eq.q.detach()[idx], rep, inputs, _tube_rows(ctx["tubes"], idx)
-
-
-def _tube_rows(tubes: TubeTensors, idx: torch.Tensor) -> TubeTensors:
-    """The tube tensors of batch rows ``idx``: shared ``(1, N)`` properties as they are,
-    per-element ones (a batch of different robots) indexed."""
-    parts = {f.name: getattr(tubes, f.name) for f in fields(tubes)}
-    return TubeTensors(**{k: t if t.shape[0] == 1 else t[idx] for k, t in parts.items()})
+    return eq.q.detach()[idx], rep, inputs, tube_rows(ctx["tubes"], idx)
 
 
 def actuator_stiffness(eq, rows=None) -> torch.Tensor:
@@ -181,7 +174,7 @@ def _rotation_rows_from_hessian(eq, rows, D0):
             tau_D = closed_form_partials(q, lay, tubes, info["tab"], info["disc"])[0]
         UDq, UDD, UDA = torch.autograd.grad((tau_D * pick).sum(), (q, D, A))
     H = full_hessian(eq._ctx["implicit_info"])[rows]                       # (B, nq, nq)
-    GJ = _tube_rows(eq._ctx["tubes"], rows).GJ.detach().expand(B, N)
+    GJ = tube_rows(eq._ctx["tubes"], rows).GJ.detach().expand(B, N)
     GJD = torch.diag_embed(GJ * D0)                                         # (B, N, N)
     UAq = H[:, :N, :].clone()
     UAq[:, :, :N] -= GJD

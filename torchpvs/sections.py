@@ -23,7 +23,7 @@ precurvature exactly (the paper's ``p_2 = 1``), so they carry no coordinates.
 from __future__ import annotations
 
 import functools
-from dataclasses import dataclass
+from dataclasses import dataclass, fields
 from typing import NamedTuple
 
 import torch
@@ -46,6 +46,14 @@ class TubeTensors:
     length: torch.Tensor
     straight: torch.Tensor
     coef: torch.Tensor
+
+
+def tube_rows(tubes: TubeTensors, rows) -> TubeTensors:
+    """The tube tensors of batch ``rows`` (an index tensor): shared ``(1, N)`` properties as
+    they are, per-element ones (a batch of different robots, ``(B, N)``) indexed, so that a
+    subset of a batch keeps its own robots."""
+    return TubeTensors(**{f.name: (t if t.shape[0] == 1 else t[rows])
+                          for f in fields(tubes) for t in (getattr(tubes, f.name),)})
 
 
 @dataclass(frozen=True)

@@ -43,7 +43,7 @@ from .newton import (
 )
 from .plan import MAGNUS_START, ORDER_START, Plan, plan_for, tube_tensors
 from .scene import Scene, load_scene
-from .sections import Discretization, TubeTensors, n_coordinates
+from .sections import Discretization, TubeTensors, n_coordinates, tube_rows
 
 __all__ = ["AccuracyWarning", "SolverOptions", "SolverError", "solve", "tube_tensors"]
 
@@ -377,7 +377,7 @@ def solve_tensors(scene: Scene, tubes: TubeTensors, D, A, F, M, opts: SolverOpti
         disc = res["disc"]
         nq = q0.shape[-1]
         loaded = _loaded(Fn, Mn, opts)
-        lay, maps = plan.layout(tubes, Dn, An, Fn, Mn, loaded, disc, nq)
+        lay, maps = plan.layout(tube_rows(tubes, sel), Dn, An, Fn, Mn, loaded, disc, nq)
         q1 = q0 * lay.qmask
         moved = (lay.qmask != res["lay"].qmask[sel]).any(-1).nonzero().flatten()
         if moved.numel():
@@ -617,7 +617,7 @@ def _load_ramp(scene, tubes, D, A, F, M, res, opts: SolverOptions, plan: Plan, q
     sub = None
     for k in range(1, n + 1):
         t = k / n
-        sub = _solve_order(scene, tubes, Dr, Ar, Fr * t, Mr * t, res["order"],
+        sub = _solve_order(scene, tube_rows(tubes, rows), Dr, Ar, Fr * t, Mr * t, res["order"],
                            res["disc"].n_magnus, opts, q, plan, deadline=work.deadline)
         work.spend(sub)
         alive = alive & sub["converged"]

@@ -39,7 +39,8 @@ TOLERANCES = (1e-3, 2e-3, 5e-3)
 # with the defaults, so all meet the same goals and the same episode rules. The others (the
 # action/observation options, the carriage model) are the policy's and are kept.
 TASK_NOT_POLICY = ("reward", "dense_scale", "tolerance", "snap_penalty", "snap_mode",
-                   "goal_min_distance", "max_episode_steps", "render_mode")
+                   "goal_min_distance", "max_episode_steps", "render_mode", "plant_scale",
+                   "tip_force", "tip_noise")
 
 
 def rollout(policy, venv, n_episodes: int, seed: int = 12345, progress: bool = True,
@@ -383,9 +384,10 @@ def main(argv: list[str] | None = None) -> int:
                    help="a training.train model .zip, or an rl_zoo3 run folder or .zip in it; "
                         "repeatable")
     p.add_argument("--baselines", nargs="*", default=[], choices=sorted(CONTROLLERS))
-    p.add_argument("--env", default="torchpvs/CTRReachForce-v0",
-                   help="environment id of the baselines (a policy uses the one it was "
-                        "trained on)")
+    p.add_argument("--env", default=None,
+                   help="environment id to evaluate on (default: a policy's own training env, "
+                        "torchpvs/CTRReachForce-v0 for the baselines); every policy and "
+                        "baseline of the call runs on it when given")
     p.add_argument("--robot", default="fig3_two_tube")
     p.add_argument("--episodes", type=int, default=500)
     p.add_argument("--batch", type=int, default=50, help="robots stepped together")
@@ -404,7 +406,7 @@ def main(argv: list[str] | None = None) -> int:
 
     import envs
 
-    if args.env not in envs.ENV_IDS:
+    if args.env is not None and args.env not in envs.ENV_IDS:
         p.error(f"--env must be one of {sorted(envs.ENV_IDS)}, got {args.env!r}")
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
@@ -417,20 +419,20 @@ def main(argv: list[str] | None = None) -> int:
     if not jobs:
         p.error("give at least one --policy or --baselines")
     for name, path in jobs:
-        env_id, kwargs = args.env, {}
+        env_id, kwargs = args.env or "torchpvs/CTRReachForce-v0", {}
         if path is not None:
             try:
                 _, meta = policy_meta(path)
             except ValueError as e:
                 p.error(str(e))
-            env_id = meta["env_id"] or env_id
+            env_id = args.env or meta["env_id"] or env_id
             kwargs = {k: v for k, v in meta["env_kwargs"].items() if k not in TASK_NOT_POLICY}
             robot = kwargs.pop("robot", args.robot)
             if robot != args.robot:
                 p.error(f"{path} was trained on robot {robot!r}; evaluate it with --robot "
                         f"{robot} (got --robot {args.robot})")
-        venv = envs.CTRReachVecEnv(args.batch, robot=args.robot, control=envs.ENV_IDS[env_id],
-                                   **kwargs)
+        venv = envs.CTRReachVecEnv(args.batch, robot=args.robot,
+                                   **{**envs.env_kwargs(env_id), **kwargs})
         policy = load_policy(path, venv) if path is not None else CONTROLLERS[name](venv)
         t0 = time.perf_counter()
         res = rollout(policy, venv, args.episodes, seed=args.seed)

@@ -161,7 +161,7 @@ def make_venv(env_id: str, hp: dict, n_envs: int | None = None):
     if "control" in kw:
         raise ValueError("env_kwargs: 'control' is set by the env id (CTRReachForce/Joint)")
     venv = envs.CTRReachVecEnv(int(n_envs or hp.get("n_envs", 1)),
-                               control=envs.ENV_IDS[env_id], **kw)
+                               **{**envs.env_kwargs(env_id), **kw})
     for cls, kwargs in _named_list(hp.get("vec_env_wrapper"), "vec_env_wrapper"):
         venv = cls(venv, **kwargs)
     return venv

@@ -1,0 +1,111 @@
+"""The plant a robot batch really is, when it differs from the nominal robot its controllers know.
+
+A real concentric tube robot is not its datasheet: tube precurvatures and moduli are off by a
+few percent, an unknown load may press on the tip, and the tip is measured with noise. With a
+:class:`PlantVariation`, each episode draws its own plant for each robot (seeded from that
+robot's generator): every tube's precurvature, ``E`` and ``G`` scaled by ``U(1 - scale,
+1 + scale)``, a constant tip force of magnitude ``U(0, tip_force)`` [N] in a uniformly random
+direction, and Gaussian tip-measurement noise of ``tip_noise`` [m] per axis. The physics
+(carriage loads, equilibria, snaps, success) follows the plant; observations and the reward see
+the measured tip; controllers are given the nominal robot (``env.robot``).
+
+:class:`Plants` holds the ``B`` robots' draws and solves their equilibria in one batched call
+with per-robot tube properties and tip loads (``torchpvs.solver.solve_tensors``).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from torchpvs.plan import tube_tensors
+from torchpvs.sections import TubeTensors
+from torchpvs.solver import solve_tensors
+
+from .robots import ENV_SOLVER_OPTIONS, Robot, solve_batch
+
+__all__ = ["PlantVariation", "Plants"]
+
+
+def _nonneg(value, name: str) -> float:
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)) \
+            or not math.isfinite(value) or value < 0:
+        raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
+    return float(value)
+
+
+@dataclass(frozen=True)
+class PlantVariation:
+    """How each episode's plant differs from the nominal robot (all 0: the nominal robot).
+
+    Attributes:
+        scale: each tube's precurvature, ``E`` and ``G`` are multiplied by independent
+            ``U(1 - scale, 1 + scale)`` factors (``0 <= scale < 1``; 0.1 = +-10 %).
+        tip_force: [N] an unknown constant tip force of magnitude ``U(0, tip_force)`` in a
+            uniformly random direction (0.1 N moves the Fig. 3 tip by up to 0.8 mm).
+        tip_noise: [m] standard deviation per axis of the Gaussian noise on the measured tip
+            (observation and ``achieved_goal``; success is judged on the true tip).
+    """
+
+    scale: float = 0.0
+    tip_force: float = 0.0
+    tip_noise: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name in ("scale", "tip_force", "tip_noise"):
+            _nonneg(getattr(self, name), f"plant {name}")
+        if self.scale >= 1:
+            raise ValueError(f"plant scale must be below 1 (factors U(1 - scale, 1 + scale) "
+                             f"must stay positive), got {self.scale!r}")
+
+    @property
+    def nominal(self) -> bool:
+        """Whether the plant is the nominal robot (nothing drawn, nothing solved apart)."""
+        return self.scale == 0 and self.tip_force == 0
+
+
+class Plants:
+    """The plants of ``B`` robots: ``factors (B, 3, N)`` (precurvature, E, G per tube) and
+    ``tip_force (B, 3)`` [N] in the base frame."""
+
+    def __init__(self, robot: Robot, variation: PlantVariation, batch_size: int):
+        self.robot, self.variation = robot, variation
+        N = robot.n_tubes
+        self.factors = np.ones((batch_size, 3, N))
+        self.tip_force = np.zeros((batch_size, 3))
+        self._base = tube_tensors(robot.scene, torch.float64, torch.device("cpu"))
+
+    def draw(self, idx: np.ndarray, rngs) -> None:
+        """New plants for robots ``idx``, each from its own generator ``rngs[i]``."""
+        v = self.variation
+        if v.nominal:
+            return
+        N = self.robot.n_tubes
+        for i in np.asarray(idx, dtype=int):
+            rng = rngs[i]
+            self.factors[i] = rng.uniform(1 - v.scale, 1 + v.scale, (3, N))
+            d = rng.normal(size=3)
+            self.tip_force[i] = rng.uniform(0, v.tip_force) * d / np.linalg.norm(d)
+
+    def solve(self, x: np.ndarray, rows: np.ndarray, initial=None):
+        """Equilibria of robots ``rows`` at actuations ``x (len(rows), 2N)`` (one batched
+        solve; the nominal robot's fast path when there is no variation)."""
+        if self.variation.nominal:
+            return solve_batch(self.robot, x, initial=initial)
+        rows = np.asarray(rows, dtype=int)
+        N = self.robot.n_tubes
+        f = torch.as_tensor(self.factors[rows])                       # (k, 3, N)
+        b = self._base
+        tubes = TubeTensors(EI=b.EI * f[:, 1], GJ=b.GJ * f[:, 2],
+                            length=b.length.expand(len(rows), -1),
+                            straight=b.straight.expand(len(rows), -1),
+                            coef=b.coef * f[:, 0, :, None, None])
+        xt = torch.as_tensor(np.asarray(x, np.float64))
+        F = torch.as_tensor(self.tip_force[rows])
+        with torch.no_grad():
+            return solve_tensors(self.robot.scene, tubes, xt[:, :N].contiguous(),
+                                 xt[:, N:].contiguous(), F, torch.zeros_like(F),
+                                 ENV_SOLVER_OPTIONS, initial, None)
