@@ -11,7 +11,7 @@ Importing this package registers:
   5 deg per step), the convention of the CTR reinforcement-learning literature;
 
 all goal-conditioned (Dict observations, ``compute_reward`` for HER), 100 steps per episode
-(150 on the robust task),
+(150 on the robust task, 200 with joint actions),
 each with a natively batched ``gymnasium.vector.VectorEnv`` as its ``vector_entry_point``
 (``gym.make_vec(id, num_envs=B, vectorization_mode="vector_entry_point")``,
 :class:`envs.CTRReachVectorEnv`). ``envs.CTRReachVecEnv`` is the same batch as a
@@ -44,7 +44,11 @@ ENV_IDS = {"torchpvs/CTRReachForce-v0": "force", "torchpvs/CTRReachJoint-v0": "j
 #: long enough (150 steps) that time is not what limits a good controller.
 ENV_OPTIONS = {"torchpvs/CTRReachForceRobust-v0": {
     "compensation": True, "plant_scale": 0.1, "tip_force": 0.5, "tip_noise": 1e-4}}
-EPISODE_STEPS = {"torchpvs/CTRReachForceRobust-v0": 150}
+#: Episode lengths: 100 steps unless set here. Joint actions move at most 1 mm and 5 deg per
+#: step: in 100 steps only 65 % of goals' sampled preimages were within reach (89 % of the rest
+#: insertion-limited); 200 steps, as in the joint-action literature (Iyengar et al.), give the
+#: share that benchmarks/env_ceilings.py prints.
+EPISODE_STEPS = {"torchpvs/CTRReachForceRobust-v0": 150, "torchpvs/CTRReachJoint-v0": 200}
 
 
 def env_kwargs(env_id: str) -> dict:

@@ -529,8 +529,9 @@ class ReachBatch:
         return np.linalg.norm(tip - goal, axis=-1)
 
     def travel_steps(self, idx=None) -> np.ndarray:
-        """Control periods the carriages need, at their full-scale speeds, to move from the
-        current actuation to the sampled preimage of the goal (rotations wrapped): a lower
+        """Control periods the actuators need, at their largest step per period
+        (:meth:`max_step_per_period`), to move from the current actuation to the sampled
+        preimage of the goal (rotations wrapped): a lower
         bound on the time to reach the goal that way (``(B,)``). Optimistic as a measure of
         what is reachable: an insertion against the elastic load is slower, and the wrapped
         rotation may pass +-180 deg (``benchmarks/reach_ceiling.py`` searches the whole
@@ -539,7 +540,17 @@ class ReachBatch:
         idx = np.arange(self.B) if idx is None else idx
         d = self.goal_actuation[idx] - self.robots.x[idx]
         d[:, self.N:] = np.angle(np.exp(1j * d[:, self.N:]))
-        return (np.abs(d) / (self.speeds * self.carriage.control_period)).max(-1)
+        return (np.abs(d) / self.max_step_per_period()).max(-1)
+
+    def max_step_per_period(self) -> np.ndarray:
+        """``(2N,)`` the most each actuator coordinate can move in one control period [m,
+        rad]: the joint increment at action ``+-1`` under joint control, the carriage's
+        full-scale (unloaded) speed times the period under force control."""
+        if self.config.control == "joint":
+            N = self.N
+            return np.concatenate([np.full(N, self.config.max_joint_step[0]),
+                                   np.full(N, self.config.max_joint_step[1])])
+        return self.speeds * self.carriage.control_period
 
     # -- stepping -----------------------------------------------------------------------------
     @staticmethod

@@ -22,7 +22,8 @@ from envs.task import OBS_BOUND
 @pytest.mark.parametrize("env_id", sorted(envs.ENV_IDS))
 def test_registered_env_passes_the_gymnasium_and_sb3_checkers(env_id):
     env = gym.make(env_id)
-    assert env.spec.max_episode_steps == 100
+    assert env.spec.max_episode_steps == {"torchpvs/CTRReachForceRobust-v0": 150,
+                                          "torchpvs/CTRReachJoint-v0": 200}.get(env_id, 100)
     gym_check_env(env.unwrapped, skip_render_check=True)
     sb3_check_env(env.unwrapped, warn=False)
     assert env.action_space == gym.spaces.Box(-1, 1, (4,), np.float32)
