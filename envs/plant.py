@@ -27,7 +27,7 @@ from torchpvs.solver import solve_tensors
 
 from .robots import ENV_SOLVER_OPTIONS, Robot, solve_batch
 
-__all__ = ["PlantVariation", "Plants"]
+__all__ = ["PlantVariation", "Plants", "solve_robots"]
 
 
 def _nonneg(value, name: str) -> float:
@@ -96,16 +96,26 @@ class Plants:
         if self.variation.nominal:
             return solve_batch(self.robot, x, initial=initial)
         rows = np.asarray(rows, dtype=int)
-        N = self.robot.n_tubes
-        f = torch.as_tensor(self.factors[rows])                       # (k, 3, N)
-        b = self._base
-        tubes = TubeTensors(EI=b.EI * f[:, 1], GJ=b.GJ * f[:, 2],
-                            length=b.length.expand(len(rows), -1),
-                            straight=b.straight.expand(len(rows), -1),
-                            coef=b.coef * f[:, 0, :, None, None])
-        xt = torch.as_tensor(np.asarray(x, np.float64))
-        F = torch.as_tensor(self.tip_force[rows])
         with torch.no_grad():
-            return solve_tensors(self.robot.scene, tubes, xt[:, :N].contiguous(),
-                                 xt[:, N:].contiguous(), F, torch.zeros_like(F),
-                                 ENV_SOLVER_OPTIONS, initial, None)
+            return solve_robots(self.robot, torch.as_tensor(np.asarray(x, np.float64)),
+                                self.factors[rows], self.tip_force[rows], initial,
+                                base=self._base)
+
+
+def solve_robots(robot: Robot, x: torch.Tensor, factors: np.ndarray, tip_force=None,
+                 initial=None, base: TubeTensors | None = None):
+    """Equilibria of ``k`` variants of ``robot`` in one batched solve: row ``i`` at actuation
+    ``x[i] (2N,)`` with each tube's precurvature, ``E`` and ``G`` multiplied by
+    ``factors[i] (3, N)`` and tip force ``tip_force[i] (3,)`` [N] (default none).
+    Differentiable in ``x`` (the implicit backward)."""
+    N = robot.n_tubes
+    k = x.shape[0]
+    f = torch.as_tensor(np.asarray(factors, np.float64))                 # (k, 3, N)
+    b = base if base is not None else tube_tensors(robot.scene, torch.float64,
+                                                   torch.device("cpu"))
+    tubes = TubeTensors(EI=b.EI * f[:, 1], GJ=b.GJ * f[:, 2], length=b.length.expand(k, -1),
+                        straight=b.straight.expand(k, -1), coef=b.coef * f[:, 0, :, None, None])
+    F = (torch.zeros(k, 3, dtype=torch.float64) if tip_force is None
+         else torch.as_tensor(np.asarray(tip_force, np.float64)))
+    return solve_tensors(robot.scene, tubes, x[:, :N], x[:, N:], F, torch.zeros_like(F),
+                         ENV_SOLVER_OPTIONS, initial, None)

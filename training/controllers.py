@@ -20,6 +20,7 @@ from envs.robots import ENV_SOLVER_OPTIONS, solve_batch
 
 __all__ = ["read_state", "env_robot", "env_config", "controller_model",
            "PlanThenServoController", "PlanThenServoFeedbackController",
+           "PlanThenServoAdaptiveController",
            "OperationalSpaceController", "ZeroPolicy", "RandomPolicy", "tip_jacobian",
            "safe_rotation_target", "rotation_crossings", "CONTROLLERS"]
 
@@ -493,7 +494,7 @@ class PlanThenServoFeedbackController(PlanThenServoController):
         err = st.goal[rows] - st.tip[rows]
         norm = np.linalg.norm(err, axis=-1, keepdims=True)
         err = err * np.minimum(1.0, self.error_cap / np.maximum(norm, 1e-15))
-        _, J = tip_jacobian(robot, s)
+        _, J = self._model_jacobian(s, rows)
         _, lower, upper = robot.project(s[:, :N], tol=1e-9)
         ds = np.zeros_like(s)
         for r in range(len(rows)):
@@ -513,12 +514,22 @@ class PlanThenServoFeedbackController(PlanThenServoController):
         off = (np.abs(_wrap(rel)) > self.edge) | (_windows(new[:, N:]) != _windows(s[:, N:]))
         keep = off.any(-1)
         new[keep, N:] = s[keep, N:]                   # no rotation step toward the snap
-        eq = solve_batch(robot, new)
-        g = torch.cat([eq.actuation_forces, eq.actuation_torques], -1).numpy()
-        ok = eq.converged.numpy() & eq.stable.numpy()
+        g, ok = self._model_load(new, rows)
         rows, new, g = rows[ok], new[ok], g[ok]
-        self.setpoint[rows], self.g_set[rows] = new, np.nan_to_num(g)
+        self.setpoint[rows], self.g_set[rows] = new, g
         self.updates[rows] += 1
+
+    # the controller's model, per robot (the adaptive controller's differ after calibration)
+    def _model_jacobian(self, x: np.ndarray, rows: np.ndarray):
+        """Model tips ``(k, 3)`` and tip Jacobians ``(k, 3, 2N)`` of robots ``rows`` at ``x``."""
+        return tip_jacobian(self.robot, x)
+
+    def _model_load(self, x: np.ndarray, rows: np.ndarray):
+        """Model loads ``g (k, 2N)`` of robots ``rows`` at ``x`` and whether each is a
+        converged, stable equilibrium."""
+        eq = solve_batch(self.robot, x)
+        g = torch.cat([eq.actuation_forces, eq.actuation_torques], -1).numpy()
+        return np.nan_to_num(g), eq.converged.numpy() & eq.stable.numpy()
 
     def __call__(self, obs) -> np.ndarray:
         st = read_state(self.venv)
@@ -537,6 +548,116 @@ class PlanThenServoFeedbackController(PlanThenServoController):
         grow = near & (np.abs(a) < 0.999).all(-1)
         self.z[grow] = np.clip(self.z[grow] + self.ki * e[grow], -cap, cap)
         return a
+
+
+class PlanThenServoAdaptiveController(PlanThenServoFeedbackController):
+    """:class:`PlanThenServoFeedbackController` that re-calibrates its model from the tips it
+    has measured in the episode, then re-plans on the calibrated model.
+
+    The robot is quasi-static (every step's tip is the equilibrium tip of that step's
+    actuation), so every step gives a measurement ``(x, tip)``. Once a robot has
+    ``calibrate_after`` of them, :func:`torchpvs.calibrate` fits ``params`` (default the
+    precurvature of every tube) of the nominal model to them (Huber scale ``huber_scale``);
+    the robot's model becomes the fitted one (per-robot factors on the nominal tubes, solved
+    together: :func:`envs.plant.solve_robots`), and ``replan_iters`` Gauss-Newton steps on it
+    move the setpoint to where the calibrated model puts the tip on the goal (each capped at
+    ``replan_step``, projected and kept off the torsional snap as the feedback steps are). The
+    feedback loops then run on the calibrated model (its Jacobian and load).
+
+    Attributes (per robot): ``factors (B, 3, N)`` the model's precurvature, ``E``, ``G``
+    factors on the nominal tubes; ``calibrated`` whether this episode's calibration ran.
+    """
+
+    def __init__(self, venv, params=("precurvature",), calibrate_after: int = 30,
+                 huber_scale: float = 3e-4, replan_iters: int = 3,
+                 replan_step: tuple[float, float] = (5e-3, 0.2), **kwargs):
+        super().__init__(venv, **kwargs)
+        if not (isinstance(calibrate_after, int) and calibrate_after >= 3):
+            raise ValueError(f"calibrate_after must be an integer >= 3, got "
+                             f"{calibrate_after!r}")
+        kinds = {p.split("[")[0] for p in ((params,) if isinstance(params, str) else params)}
+        if not kinds <= {"precurvature", "E", "G"}:
+            raise ValueError(f"params: the adaptive controller fits precurvature, E and G "
+                             f"factors, got {params!r}")
+        self.params, self.calibrate_after = params, calibrate_after
+        self.huber_scale, self.replan_iters = huber_scale, int(replan_iters)
+        N = self.robot.n_tubes
+        self.replan_step = np.repeat(np.asarray(replan_step, np.float64), N)
+        B = venv.num_envs
+        self.factors = np.ones((B, 3, N))
+        self.calibrated = np.zeros(B, dtype=bool)
+        self.history: list[list[tuple[np.ndarray, np.ndarray]]] = [[] for _ in range(B)]
+
+    def plan(self, idx, st) -> None:
+        idx = np.asarray(idx, dtype=int)
+        self.factors[idx] = 1.0
+        self.calibrated[idx] = False
+        for i in idx:
+            self.history[i] = []
+        super().plan(idx, st)
+
+    def _model_jacobian(self, x, rows):
+        from envs.plant import solve_robots
+        X = torch.as_tensor(x, dtype=torch.float64).clone().requires_grad_(True)
+        eq = solve_robots(self.robot, X, self.factors[rows])
+        J = [torch.autograd.grad(eq.tip_position[:, i].sum(), X, retain_graph=i < 2)[0]
+             for i in range(3)]
+        return eq.tip_position.detach().numpy(), torch.stack(J, 1).numpy()
+
+    def _model_load(self, x, rows):
+        from envs.plant import solve_robots
+        with torch.no_grad():
+            eq = solve_robots(self.robot, torch.as_tensor(x, dtype=torch.float64),
+                              self.factors[rows])
+        g = torch.cat([eq.actuation_forces, eq.actuation_torques], -1).numpy()
+        return np.nan_to_num(g), eq.converged.numpy() & eq.stable.numpy()
+
+    def _recalibrate(self, rows: np.ndarray, st) -> None:
+        N = self.robot.n_tubes
+        kinds = {"precurvature": 0, "E": 1, "G": 2}
+        for i in rows:
+            X = np.array([h[0] for h in self.history[i]])
+            T = np.array([h[1] for h in self.history[i]])
+            cal = torchpvs.calibrate(self.robot.scene, X[:, :N], X[:, N:], T,
+                                     params=self.params, huber_scale=self.huber_scale,
+                                     max_iter=20)
+            if not (cal.converged and cal.identifiability.identifiable):
+                continue
+            for name, v in zip(cal.names, cal.value, strict=True):
+                kind, j = name.split("[")[0], int(name.split("[")[1][:-1])
+                nominal = {"precurvature": 1.0, "E": self.robot.scene.tubes[j].E,
+                           "G": self.robot.scene.tubes[j].G}[kind]
+                self.factors[i, kinds[kind], j] = v / nominal
+        self.calibrated[rows] = True
+        # re-plan locally on the calibrated models: Gauss-Newton on the setpoint
+        s = self.setpoint[rows].copy()
+        goal = st.goal[rows]
+        j, k = np.triu_indices(N, 1)
+        for _ in range(self.replan_iters):
+            tip, J = self._model_jacobian(s, rows)
+            ds = np.stack([np.linalg.pinv(J[r], rcond=1e-9) @ (goal[r] - tip[r])
+                           for r in range(len(rows))])
+            ds *= np.minimum(1.0, 1.0 / np.max(np.abs(ds) / self.replan_step, -1,
+                                               initial=1e-15))[:, None]
+            new = s + ds
+            new[:, :N], _, _ = self.robot.project(new[:, :N])
+            off = ((np.abs(_wrap(new[:, N + k] - new[:, N + j])) > self.edge)
+                   | (_windows(new[:, N:]) != _windows(s[:, N:]))).any(-1)
+            new[off, N:] = s[off, N:]
+            s = new
+        g, ok = self._model_load(s, rows)
+        self.setpoint[rows[ok]], self.g_set[rows[ok]] = s[ok], g[ok]
+
+    def __call__(self, obs) -> np.ndarray:
+        st = read_state(self.venv)
+        self.replan(st)
+        for i in range(len(self.history)):
+            self.history[i].append((st.x[i].copy(), st.tip[i].copy()))
+        due = np.flatnonzero(~self.calibrated & (np.array([len(h) for h in self.history])
+                                                 >= self.calibrate_after))
+        if len(due):
+            self._recalibrate(due, st)
+        return super().__call__(obs)
 
 
 class OperationalSpaceController:
@@ -594,5 +715,6 @@ class RandomPolicy:
 
 #: Baselines by name (``training.evaluate --baselines``, ``residual: {base: ...}``).
 CONTROLLERS = {"pts": PlanThenServoController, "pts_feedback": PlanThenServoFeedbackController,
+               "pts_adaptive": PlanThenServoAdaptiveController,
                "osc": OperationalSpaceController,
                "zero": ZeroPolicy, "random": RandomPolicy}

@@ -266,3 +266,22 @@ def test_feedback_controller_is_a_named_baseline_and_checks_arguments():
                       (dict(model="fig3"), "model must be")):
         with pytest.raises((ValueError, TypeError), match=match):
             PlanThenServoFeedbackController(venv, table_size=TABLE, **kw)
+
+
+def test_adaptive_controller_calibrates_its_model_from_the_episode():
+    """The model's precurvatures are 5 % high; after 30 steps the adaptive controller has
+    fitted factors of 1 / 1.05 on its model (the plant is the nominal robot: the truth) from
+    the tips it measured, and reaches the goals (3 seeded goals, all reachable in time)."""
+    from torchpvs.testing import scaled_tubes
+    from training.controllers import PlanThenServoAdaptiveController
+    from training.evaluate import rollout
+    venv = envs.CTRReachVecEnv(3)
+    model = scaled_tubes(venv.robot.scene, precurvature=(1.05, 1.05))
+    pol = PlanThenServoAdaptiveController(venv, model=model, table_size=TABLE)
+    res = rollout(pol, venv, 3, seed=12346, progress=False)
+    assert pol.calibrated.all()
+    np.testing.assert_allclose(pol.factors[:, 0, :], 1 / 1.05, rtol=0.01)
+    np.testing.assert_array_equal(pol.factors[:, 1:, :], 1.0)        # E, G not fitted
+    assert (res["final_error"] <= 1e-3).sum() >= 2, res["final_error"]
+    with pytest.raises(ValueError, match="calibrate_after"):
+        PlanThenServoAdaptiveController(venv, calibrate_after=1, table_size=TABLE)
