@@ -279,9 +279,11 @@ def _callbacks(algo, env_id, hp, venv_train, run_dir: Path, seed: int, total: in
 def train(algo: str, env_id: str, hp: dict, *, steps: int | None = None, seed: int = 0,
           out: str | Path = "runs", progress: bool = True, threads: int = 1,
           eval_freq: int = 20_000, eval_episodes: int = 200, max_minutes: float | None = None,
-          argv: list[str] | None = None) -> Path:
+          argv: list[str] | None = None, init_from: str | Path | None = None) -> Path:
     """Train ``algo`` on ``env_id`` with the (checked, overridden) entry ``hp``; returns the
-    run folder."""
+    run folder. ``init_from``: a saved model (``.zip`` of the same algorithm, observation and
+    action spaces) whose networks start the run (fine-tuning on another task; the replay
+    buffer starts empty)."""
     import torch
     from stable_baselines3.common.vec_env import VecMonitor, VecNormalize
 
@@ -312,6 +314,12 @@ def train(algo: str, env_id: str, hp: dict, *, steps: int | None = None, seed: i
     if nk is not None:
         venv = VecNormalize(venv, **nk)
     model = make_model(algo, hp, venv, seed, run_dir)
+    if init_from is not None:
+        try:
+            model.set_parameters(str(init_from), exact_match=True, device="cpu")
+        except (OSError, ValueError, RuntimeError, KeyError) as e:
+            raise ValueError(f"--init-from {init_from}: cannot load its networks into a "
+                             f"{algo} model of this env ({e})") from None
     if res is not None:
         from .residual import zero_residual_head
         zero_residual_head(model)
@@ -327,6 +335,8 @@ def train(algo: str, env_id: str, hp: dict, *, steps: int | None = None, seed: i
             "command": cmd}
     if res is not None:
         meta["residual"] = res
+    if init_from is not None:
+        meta["init_from"] = str(init_from)
     (run_dir / "model.json").write_text(json.dumps(meta, indent=2))
     if (run_dir / "best_model.zip").exists():  # the eval callback's best: same algo/env/residual
         (run_dir / "best_model.json").write_text(json.dumps(meta, indent=2))
@@ -363,6 +373,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--threads", type=int, default=1, help="torch threads (1 is fastest here)")
     p.add_argument("--max-minutes", type=float, default=None,
                    help="stop after this much wall time (the model so far is saved)")
+    p.add_argument("--init-from", default=None, metavar="MODEL_ZIP",
+                   help="start from this saved model's networks (fine-tuning)")
     p.add_argument("--no-progress", action="store_true")
     args = p.parse_args(argv)
     try:
@@ -385,7 +397,7 @@ def main(argv: list[str] | None = None) -> int:
     train(args.algo, args.env, hp, steps=args.n_timesteps, seed=args.seed, out=args.out,
           progress=not args.no_progress and sys.stderr.isatty(), threads=args.threads,
           eval_freq=args.eval_freq, eval_episodes=args.eval_episodes,
-          max_minutes=args.max_minutes, argv=argv)
+          max_minutes=args.max_minutes, argv=argv, init_from=args.init_from)
     return 0
 
 

@@ -108,6 +108,30 @@ def test_train_200_steps_and_evaluate(tmp_path):
     assert (out / "error_histogram.png").exists() and (out / "learning_curve.png").exists()
 
 
+def test_fine_tuning_starts_from_the_saved_networks(tmp_path):
+    """--init-from: a run on the robust task starts from another run's networks (the same
+    weights before its first update), and a model of other spaces is refused by name."""
+    import torch
+    hp = _tiny(train.load_hyperparams("sac", ZOO_ENV))
+    first = train.train("sac", ZOO_ENV, hp, steps=100, seed=1, out=tmp_path / "a",
+                        progress=False, eval_freq=0, eval_episodes=0)
+    robust = "torchpvs/CTRReachForceRobust-v0"
+    hp_r = dict(hp, learning_starts=10**6)   # no update: the weights stay the loaded ones
+    run = train.train("sac", robust, hp_r, steps=50, seed=2, out=tmp_path / "b",
+                      progress=False, eval_freq=0, eval_episodes=0,
+                      init_from=first / "model.zip")
+    from stable_baselines3.common.save_util import load_from_zip_file
+    a, b = (load_from_zip_file(r / "model.zip", device="cpu")[1]["policy"] for r in (first, run))
+    assert all(torch.equal(a[k], b[k]) for k in a)
+    assert json.loads((run / "model.json").read_text())["init_from"] == str(
+        first / "model.zip")
+    with pytest.raises(ValueError, match="--init-from"):
+        three = dict(hp, env_kwargs={"robot": "rvim_three_tube", "max_episode_steps": 20})
+        train.train("sac", "torchpvs/CTRReachForce-v0", three, steps=10, seed=0,
+                    out=tmp_path / "c", progress=False, eval_freq=0, eval_episodes=0,
+                    init_from=first / "model.zip")
+
+
 def test_training_cli_overrides_reach_the_run(tmp_path):
     """--env-kwargs merges into env_kwargs, --hyperparams overrides keys, --residual adds the
     wrapper: all recorded in the run's hyperparams.yml and model.json."""
