@@ -6,18 +6,11 @@ from __future__ import annotations
 
 import numpy as np
 import pytest
-import torch
 
 import envs
 from envs.ceilings import travel_ceiling
 
-
-@pytest.fixture(autouse=True)
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 @pytest.mark.parametrize("env_id", sorted(envs.ENV_IDS))

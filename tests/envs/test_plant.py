@@ -19,12 +19,7 @@ from torchpvs.testing import scaled_tubes
 ROBUST = "torchpvs/CTRReachForceRobust-v0"
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def test_the_robust_id_fixes_its_task():

@@ -23,14 +23,7 @@ from training.controllers import (
 TABLE = 512   # a smaller seeding table than the default keeps these tests fast
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    """Batches of one or two robots run faster on one torch thread (and 5-10x faster than on
-    two when the cores are shared)."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def _window(rel: np.ndarray) -> np.ndarray:

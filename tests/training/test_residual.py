@@ -25,12 +25,7 @@ SPEC = {"base": "pts", "plan_obs": True, "table_size": TABLE}
 ENV = "torchpvs/CTRReachForce-v0"
 
 
-@pytest.fixture(autouse=True)
-def _one_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread")
 
 
 def _features(target, st):
