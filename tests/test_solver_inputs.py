@@ -257,3 +257,37 @@ def test_time_limit_bounds_a_hard_solve_and_says_so():
 def test_time_limit_must_be_positive_seconds(value):
     with pytest.raises(ValueError, match="options.time_limit must be a positive number"):
         tp.SolverOptions(time_limit=value)
+
+
+# -- wall-clock bounds of the calls made of many solves -------------------------------------
+
+def test_calls_of_many_solves_honour_their_time_limit():
+    """inverse_kinematics, solve_force_controlled and continuation stop at their time_limit
+    (checked before every iteration, every inner solve bounded by what is left) and say so;
+    with the default limits the same calls finish."""
+    import math
+    import time
+
+    import torchpvs
+    scene = torchpvs.load_scene("renda2021_fig3")
+    t = time.perf_counter()
+    ik = torchpvs.inverse_kinematics(scene, [0.03, 0.02, 0.09], time_limit=0.05)
+    assert ik.timed_out and time.perf_counter() - t < 3.0
+    assert not torchpvs.inverse_kinematics(scene, [0.03, 0.02, 0.09], max_iter=2).timed_out
+    t = time.perf_counter()
+    fc = torchpvs.solve_force_controlled(scene, torques=[math.nan, 0.01], time_limit=1e-3,
+                                         on_failure="ignore")
+    assert time.perf_counter() - t < 3.0
+    assert not bool(fc.converged[0]) and "time limit" in fc.reason[0]
+    path = torchpvs.ActuationPath(rotation=[[0, 0], [0, 2 * math.pi]])
+    t = time.perf_counter()
+    res = torchpvs.continuation("renda2021_section3b", path, time_limit=0.3)
+    assert time.perf_counter() - t < 3.0
+    assert not res.complete and "time limit" in res.reason and len(res) >= 1
+    for call in (lambda: torchpvs.inverse_kinematics(scene, [0.03, 0.02, 0.09], time_limit=0),
+                 lambda: torchpvs.solve_force_controlled(scene, torques=[math.nan, 0.01],
+                                                         time_limit=-1.0),
+                 lambda: torchpvs.continuation("renda2021_section3b", path,
+                                               time_limit=math.inf)):
+        with pytest.raises(ValueError, match="time_limit must be a positive number"):
+            call()

@@ -26,6 +26,7 @@ The continuation then goes on from that branch.
 from __future__ import annotations
 
 import math
+import time
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from typing import Any
@@ -34,7 +35,7 @@ import torch
 
 from .equilibrium import Equilibrium
 from .scene import Scene, load_scene
-from .solver import SolverOptions, solve
+from .solver import SolverOptions, check_time_limit, solve, within_deadline
 
 __all__ = ["ActuationPath", "Continuation", "FoldEvent", "continuation"]
 
@@ -168,6 +169,8 @@ class Continuation:
         branch: ``(K,)`` int, incremented after every snap (points of one branch share it).
         folds: the :class:`FoldEvent` list, in path order.
         n_solves: number of equilibrium solves spent.
+        complete: whether the path was followed to its end; ``reason`` says why not (the
+            time limit, or a root-finding continuation stuck on an unstable branch).
     """
 
     s: torch.Tensor
@@ -185,6 +188,8 @@ class Continuation:
     branch: torch.Tensor
     folds: tuple[FoldEvent, ...]
     n_solves: int
+    complete: bool = True
+    reason: str = "complete"
 
     def __len__(self) -> int:
         return self.s.shape[0]
@@ -196,7 +201,7 @@ def continuation(scene: Scene | str, path: Any, *, options: SolverOptions | None
                  initial: Equilibrium | torch.Tensor | None = None, max_step: float = 0.02,
                  min_step: float = 1e-3, max_tip_jump: float | None = None,
                  fold_tol: float = 1e-4, s_span: tuple[float, float] = (0.0, 1.0),
-                 progress: bool = False) -> Continuation:
+                 progress: bool = False, time_limit: float | None = 300.0) -> Continuation:
     """Follow the equilibrium of ``scene`` along ``path`` and report folds (snap points).
 
     Args:
@@ -216,6 +221,9 @@ def continuation(scene: Scene | str, path: Any, *, options: SolverOptions | None
         s_span: ``(s_start, s_end)``, a sub-range of ``[0, 1]``; ``s_end < s_start`` follows
             the path backwards (for hysteresis sweeps).
         progress: show a tqdm progress bar (only if tqdm is installed).
+        time_limit: [s] wall-clock bound on the whole path (default 300 s; ``None``: none),
+            checked before every step, every solve bounded by what is left; a path cut short
+            returns what it followed with ``complete=False`` and the ``reason``.
 
     Returns:
         :class:`Continuation`.
@@ -240,11 +248,16 @@ def continuation(scene: Scene | str, path: Any, *, options: SolverOptions | None
     quiet = replace(opts, on_failure="ignore")
     n_solves = 0
 
+    t_start = time.perf_counter()
+    check_time_limit(time_limit)
+    deadline = None if time_limit is None else t_start + time_limit
+
     def at(s: float, init, o: SolverOptions) -> Equilibrium:
         nonlocal n_solves
         D, A = pth(s, scene)
         n_solves += 1
-        return solve(scene, insertion=D, rotation=A, options=o, initial=init)
+        return solve(scene, insertion=D, rotation=A, options=within_deadline(o, deadline),
+                     initial=init)
 
     bar = None
     if progress:
@@ -285,7 +298,12 @@ def continuation(scene: Scene | str, path: Any, *, options: SolverOptions | None
     record(s0, cur)
     s = s0
     h = max_step
+    complete, why = True, "complete"
     while direction * (s1 - s) > 1e-14:
+        if deadline is not None and time.perf_counter() > deadline:
+            complete, why = False, (f"time limit time_limit={time_limit:g} s reached at s = "
+                                    f"{s:.6g} of {s1:g} after {n_solves} solves")
+            break
         h = max(min(h, max_step), min_step)
         s_new = s + direction * min(h, abs(s1 - s))
         trial = at(s_new, cur, opts)
@@ -353,7 +371,9 @@ def continuation(scene: Scene | str, path: Any, *, options: SolverOptions | None
             bar.update(abs(hi - s))
         s, cur = hi, after
         if opts.method == "root" and not bool(cur.stable[0]):
-            break  # root cannot leave an unstable branch by itself; nothing stable to follow
+            # root cannot leave an unstable branch by itself; nothing stable to follow
+            complete, why = False, f"stopped at s = {s:.6g} on an unstable branch (method root)"
+            break
         h = max_step
     if bar is not None:
         bar.close()
@@ -370,4 +390,4 @@ def continuation(scene: Scene | str, path: Any, *, options: SolverOptions | None
         energy=vec("energy"), stability_margin=vec("margin"), stable=vec("stable", torch.bool),
         actuation_forces=stack("forces"), actuation_torques=stack("torques"),
         converged=vec("converged", torch.bool), branch=vec("branch", torch.long),
-        folds=tuple(folds), n_solves=n_solves)
+        folds=tuple(folds), n_solves=n_solves, complete=complete, reason=why)

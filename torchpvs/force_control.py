@@ -45,6 +45,7 @@ is positive definite iff both are; the common-rotation zero mode is excluded as 
 from __future__ import annotations
 
 import math
+import time
 import warnings
 from dataclasses import dataclass, replace
 
@@ -53,7 +54,7 @@ import torch
 from .equilibrium import Equilibrium
 from .jacobians import actuator_stiffness, control_jacobians
 from .scene import Scene, load_scene
-from .solver import SolverError, SolverOptions, solve
+from .solver import SolverError, SolverOptions, check_time_limit, solve, within_deadline
 
 __all__ = ["ForceControlled", "commanded_force_jacobian", "solve_force_controlled"]
 
@@ -153,6 +154,7 @@ def solve_force_controlled(
     initial: Equilibrium | torch.Tensor | None = None, force_tol: float = 1e-8,
     torque_tol: float = 1e-10, max_iter: int = 60, max_step: tuple[float, float] = (5e-3, 0.25),
     max_rotation_travel: float = 2 * math.pi, on_failure: str = "warn",
+    time_limit: float | None = 120.0,
 ) -> ForceControlled:
     """Equilibrium with commanded actuator forces/torques on some coordinates (batched).
 
@@ -183,10 +185,16 @@ def solve_force_controlled(
             (the commanded torque exceeds what the tube can resist: it would spin).
         on_failure: ``"warn"`` (default), ``"raise"`` (:class:`~torchpvs.SolverError`) or
             ``"ignore"`` for elements without an equilibrium (status is always in the result).
+        time_limit: [s] wall-clock bound on the whole call (default 120 s; ``None``: none),
+            checked before every Newton trial, every solve bounded by what is left; elements
+            still unconverged then say "time limit ... reached".
 
     Returns:
         :class:`ForceControlled`.
     """
+    t_start = time.perf_counter()
+    check_time_limit(time_limit)
+    deadline = None if time_limit is None else t_start + time_limit
     if not isinstance(scene, Scene):
         scene = load_scene(scene)
     opts = options or SolverOptions()
@@ -255,7 +263,7 @@ def solve_force_controlled(
 
     def evaluate(xx, init):
         eq = solve(scene, insertion=xx[:, :N], rotation=xx[:, N:], tip_force=F, tip_moment=M,
-                   options=inner, initial=init)
+                   options=within_deadline(inner, deadline), initial=init)
         tau = torch.cat([eq.actuation_forces, eq.actuation_torques], -1).detach()
         return eq, tau
 
@@ -303,10 +311,14 @@ def solve_force_controlled(
 
     history: list[torch.Tensor] = []
     window = 8
+    timed_out = False
     for _ in range(max_iter):
         done = ((r.abs() <= tol) | ~free).all(-1)
         active = ~done & ~failed
         if not bool(active.any()):
+            break
+        if deadline is not None and time.perf_counter() > deadline:
+            timed_out = True
             break
         Ks = S[:, None] * K * S[None, :] * (free[:, :, None] & free[:, None, :])
         rs = r * S
@@ -414,6 +426,11 @@ def solve_force_controlled(
     for b in range(B):
         if bool(conv[b]):
             reason[b] = "converged"
+        elif not reason[b] and timed_out:
+            k = int(((r[b] * S).abs()).argmax())
+            reason[b] = (f"time limit time_limit={time_limit:g} s reached after "
+                         f"{int(iters[b])} trials: largest residual {names[k]}: "
+                         f"{float(r[b, k]):.3g}")
         elif not reason[b]:
             k = int(((r[b] * S).abs()).argmax())
             reason[b] = (f"not converged after {int(iters[b])} trials (max_iter): largest "
@@ -421,7 +438,9 @@ def solve_force_controlled(
                          f"start closer to the solution (continuation in the commanded values)")
     # final equilibrium at the accepted actuation (warm: no Newton iterations)
     eqs = solve(scene, insertion=x[:, :N], rotation=x[:, N:], tip_force=F, tip_moment=M,
-                options=inner, initial=q)
+                options=within_deadline(inner, None if deadline is None else
+                                        max(deadline, time.perf_counter())
+                                        + 0.1 * time_limit), initial=q)
     Ks = S[:, None] * K * S[None, :]
     Kf = torch.where(free[:, :, None] & free[:, None, :], 0.5 * (Ks + Ks.transpose(1, 2)),
                      torch.zeros_like(Ks))

@@ -19,12 +19,13 @@ from __future__ import annotations
 
 import hashlib
 import math
+import time
 from dataclasses import dataclass
 
 import torch
 
 from .scene import Scene, load_scene
-from .solver import SolverOptions, check_actuation, solve
+from .solver import SolverOptions, check_actuation, check_time_limit, solve, within_deadline
 
 __all__ = ["IKResult", "inverse_kinematics"]
 
@@ -34,7 +35,9 @@ class IKResult:
     """Per goal ``(G, ...)``: ``insertion``/``rotation`` ``(G, N)`` [m], [rad]; ``tip`` ``(G, 3)``
     [m] at that actuation; ``error`` ``(G,)`` [m] to the goal; ``solved`` ``(G,)`` converged,
     stable and within ``tol``; ``travel`` ``(G,)`` ``sum |dD| + travel_scale sum |dalpha|`` from
-    the initial actuation [m]; ``starts_solved`` ``(G,)`` how many starts reached the goal."""
+    the initial actuation [m]; ``starts_solved`` ``(G,)`` how many starts reached the goal;
+    ``timed_out`` whether ``time_limit`` stopped the iterations (the best actuations found by
+    then are returned, ``solved`` says which meet ``tol``)."""
 
     insertion: torch.Tensor
     rotation: torch.Tensor
@@ -43,13 +46,15 @@ class IKResult:
     solved: torch.Tensor
     travel: torch.Tensor
     starts_solved: torch.Tensor
+    timed_out: bool = False
 
 
 def inverse_kinematics(scene: Scene | str, goal, *, starts: int = 8, tol: float = 1e-4,
                        max_iter: int = 60, initial_insertion=None, initial_rotation=None,
                        min_exposed: float = 5e-3, max_step: tuple[float, float] = (5e-3, 0.3),
                        travel_scale: float = 0.05, seed: int = 0,
-                       options: SolverOptions | None = None) -> IKResult:
+                       options: SolverOptions | None = None,
+                       time_limit: float | None = 120.0) -> IKResult:
     """Stable actuations that put the tip at ``goal`` ``(3,)`` or ``(G, 3)`` [m] (base frame).
 
     Args:
@@ -69,8 +74,12 @@ def inverse_kinematics(scene: Scene | str, goal, *, starts: int = 8, tol: float 
             values of its own row (goal, initial actuation), so a goal gets the same answer
             wherever it sits in the batch.
         options: solver options of the equilibria (default ``order=2, n_magnus=8``, no forces).
+        time_limit: [s] wall-clock bound on the whole call (default 120 s; ``None``: none):
+            checked before every iteration, and every solve is bounded by what is left.
     """
+    t_start = time.perf_counter()
     scene = scene if isinstance(scene, Scene) else load_scene(scene)
+    check_time_limit(time_limit)
     if not (isinstance(starts, int) and starts >= 1):
         raise ValueError(f"starts must be an integer >= 1, got {starts!r}")
     if not (isinstance(tol, (int, float)) and tol > 0 and math.isfinite(tol)):
@@ -151,10 +160,16 @@ def inverse_kinematics(scene: Scene | str, goal, *, starts: int = 8, tol: float 
     J = torch.zeros(B, 3, 2 * N, dtype=dt)
     r = torch.zeros(B, 3, dtype=dt)
     xD, xA = D, A                                       # accepted actuations
+    deadline = None if time_limit is None else t_start + time_limit
+    timed_out = False
     for _ in range(max_iter + 1):
+        if deadline is not None and time.perf_counter() > deadline:
+            timed_out = True
+            break
         # Solve at the trial actuations (with the tip Jacobian on the way).
         Dg, Ag = D.clone().requires_grad_(True), A.clone().requires_grad_(True)
-        eq = solve(scene, insertion=Dg, rotation=Ag, options=opts, initial=q)
+        eq = solve(scene, insertion=Dg, rotation=Ag, options=within_deadline(opts, deadline),
+                   initial=q)
         p = eq.tip_position
         r_new = target - p.detach()
         e_new = r_new.norm(dim=-1)
@@ -183,7 +198,10 @@ def inverse_kinematics(scene: Scene | str, goal, *, starts: int = 8, tol: float 
         done = (err < tol)[:, None]
         D = torch.where(done, xD, _project(xD + dD / cap[:, None], D_max))
         A = torch.where(done, xA, xA + dA / cap[:, None])
-    final = solve(scene, insertion=xD, rotation=xA, options=opts)
+    final = solve(scene, insertion=xD, rotation=xA,
+                  options=within_deadline(opts, None if deadline is None
+                                          else max(deadline, time.perf_counter())
+                                          + 0.1 * time_limit))
     err = (target - final.tip_position).norm(dim=-1)
     ok = (err < tol) & final.converged & final.stable
     travel = ((xD.reshape(G, K, N) - D0[:, None]).abs().sum(-1)
@@ -193,7 +211,7 @@ def inverse_kinematics(scene: Scene | str, goal, *, starts: int = 8, tol: float 
     idx = torch.arange(G) * K + best
     return IKResult(insertion=xD[idx], rotation=xA[idx], tip=final.tip_position[idx],
                     error=err[idx], solved=ok[idx], travel=travel[torch.arange(G), best],
-                    starts_solved=ok.reshape(G, K).sum(-1))
+                    starts_solved=ok.reshape(G, K).sum(-1), timed_out=timed_out)
 
 
 def _random_starts(seed: int, goal: torch.Tensor, D0: torch.Tensor, A0: torch.Tensor,

@@ -205,6 +205,27 @@ class SolverOptions:
                               n_magnus=self.n_magnus or MAGNUS_START)
 
 
+def check_time_limit(time_limit, name: str = "time_limit") -> float | None:
+    """A wall-clock bound [s]: a positive finite number or ``None`` (no bound)."""
+    if time_limit is not None and not (isinstance(time_limit, (int, float))
+                                       and not isinstance(time_limit, bool)
+                                       and time_limit > 0 and math.isfinite(time_limit)):
+        raise ValueError(f"{name} must be a positive number of seconds or None, got "
+                         f"{time_limit!r}")
+    return time_limit
+
+
+def within_deadline(opts: SolverOptions, deadline: float | None) -> SolverOptions:
+    """``opts`` with its ``time_limit`` cut to what is left before ``deadline`` (a
+    ``time.perf_counter()`` value; ``None``: unchanged), so that a call made of many solves
+    keeps its own bound. At least 1 ms, so that an expired call still returns a verdict."""
+    if deadline is None:
+        return opts
+    left = max(deadline - time.perf_counter(), 1e-3)
+    limit = left if opts.time_limit is None else min(opts.time_limit, left)
+    return replace(opts, time_limit=limit)
+
+
 def as_batch(x, n: int, name: str, dtype, device) -> torch.Tensor:
     t = torch.as_tensor(x, dtype=dtype, device=device)
     if t.ndim == 1:
