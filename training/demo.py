@@ -1,11 +1,13 @@
-"""The README's main job: a torque-controlled reach with the shipped policy.
+"""The README's main job: a torque-controlled reach with the shipped policies.
 
-    python -m training.demo [--policy training/policies/tqc_residual_pts.zip] [--goals 20]
+    python -m training.demo [--policy training/policies/tqc_force.zip ...] [--goals 20]
 
-Loads the shipped TQC policy for the force/torque-action environment (the paper's Fig. 3
-robot; a residual agent on the plan-then-servo controller, see ``training/residual.py``),
-evaluates it on seeded goals next to the model-based controllers (plan-then-servo and
-operational-space), prints the success rates and final errors, and saves
+Loads the shipped TQC policies for the force/torque-action environment (the paper's Fig. 3
+robot): the model-free agent (``tqc_force.zip``, compensated force actions, TQC + HER) and the
+residual agent on plan-then-servo (``tqc_residual_pts.zip``, raw force actions, see
+``training/residual.py``), each on the action convention it was trained on, evaluates them on
+seeded goals next to the model-based controllers (plan-then-servo and operational-space),
+prints the success rates and final errors, and saves
 ``demo_out/reach.png``: on the first seeded goal the first policy reaches, the tip paths of every
 policy (top and side views), their tip error over time, and the first policy's actuator forces
 and torques. Without a policy file it loads, it demos the controllers alone and says so.
@@ -20,7 +22,8 @@ from pathlib import Path
 
 import numpy as np
 
-DEFAULT_POLICY = Path(__file__).resolve().parent / "policies" / "tqc_residual_pts.zip"
+POLICIES = Path(__file__).resolve().parent / "policies"
+DEFAULT_POLICIES = (POLICIES / "tqc_force.zip", POLICIES / "tqc_residual_pts.zip")
 
 
 def _episodes(policy, venv, seed: int) -> dict[str, np.ndarray]:
@@ -50,8 +53,8 @@ def _figure(runs: dict[str, dict], k: int, robot, path: Path, dt: float) -> None
     fig = Figure(figsize=(12, 6.6))
     FigureCanvasAgg(fig)
     gs = fig.add_gridspec(2, 2, width_ratios=[1, 1.35])
-    styles = [dict(color="tab:blue", lw=2.2), dict(color="tab:orange", lw=1.8, ls="--"),
-              dict(color="tab:purple", lw=1.5, ls=":")]
+    styles = [dict(color="tab:blue", lw=2.2), dict(color="tab:red", lw=1.8, ls="-."),
+              dict(color="tab:orange", lw=1.8, ls="--"), dict(color="tab:purple", lw=1.5, ls=":")]
     first = next(iter(runs.values()))
     goal, start = first["goal"][k] * 1e3, first["tip"][k, 0] * 1e3
     for row, (i, j, view) in enumerate(((0, 1, "top view"), (0, 2, "side view"))):
@@ -100,7 +103,9 @@ def main(argv: list[str] | None = None) -> int:
 
     p = argparse.ArgumentParser(prog="python -m training.demo", description=__doc__,
                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    p.add_argument("--policy", default=str(DEFAULT_POLICY))
+    p.add_argument("--policy", action="append", default=None,
+                   help="a policy .zip (repeatable; default the shipped model-free and "
+                        "residual agents)")
     p.add_argument("--goals", type=int, default=20)
     p.add_argument("--seed", type=int, default=2026)
     p.add_argument("-o", "--output-dir", default="demo_out")
@@ -113,33 +118,39 @@ def main(argv: list[str] | None = None) -> int:
 
     out = Path(args.output_dir)
     venv = envs.CTRReachVecEnv(args.goals, control="force")
-    policies = {}
-    if Path(args.policy).exists():
-        meta = Path(args.policy).with_suffix(".json")
+    # each policy on the action convention it was trained on (the same seeded goals: the
+    # action options do not change how starts and goals are drawn)
+    policies: dict[str, tuple] = {}
+    for path in args.policy or [str(p) for p in DEFAULT_POLICIES]:
+        if not Path(path).exists():
+            print(f"no policy at {path}: skipped (train one: docs/training.md)")
+            continue
+        meta = Path(path).with_suffix(".json")
         info = json.loads(meta.read_text()) if meta.exists() else {}
         residual, algo = info.get("residual"), str(info.get("algo", "agent")).upper()
+        comp = bool((info.get("env_kwargs") or {}).get("compensation", False))
         label = (f"{algo} residual on {residual.get('base', 'osc').upper()}" if residual
-                 else f"{algo} (force actions)")
+                 else f"{algo}+HER, model-free" + (" (compensated)" if comp else ""))
+        own = venv if not comp else envs.CTRReachVecEnv(args.goals, control="force",
+                                                        compensation=True)
         try:
-            policies[label] = load_policy(args.policy, venv)
+            policies[label] = (load_policy(path, own), own)
         except ValueError as e:  # e.g. trained on an older observation layout
-            print(f"cannot load {args.policy} ({str(e).splitlines()[0][:200]}): demo of the "
-                  f"model-based controllers only")
-    else:
-        print(f"no policy at {args.policy}: demo of the model-based controllers only "
-              f"(train one with: python -m training.train --algo sac --residual base:pts)")
-    policies["plan-then-servo"] = PlanThenServoController(venv)
-    policies["operational-space controller"] = OperationalSpaceController(venv)
+            print(f"cannot load {path} ({str(e).splitlines()[0][:200]}): skipped")
+    if not policies:
+        print("no shipped policy loaded: demo of the model-based controllers only")
+    policies["plan-then-servo"] = (PlanThenServoController(venv), venv)
+    policies["operational-space controller"] = (OperationalSpaceController(venv), venv)
     print(f"torque-controlled reaching, {venv.robot.name}: actions are actuator forces "
           f"(+-{venv.robot.force_scale} N) and torques (+-{venv.robot.torque_scale} N·m); "
           f"{args.goals} seeded goals, 100 steps of 0.1 s")
-    for name, pol in policies.items():
-        s = summarize(rollout(pol, venv, args.goals, seed=args.seed, progress=False))
+    for name, (pol, env) in policies.items():
+        s = summarize(rollout(pol, env, args.goals, seed=args.seed, progress=False))
         print(f"  {name:>30s}: success@1mm {s['success@1mm']:.2f}, @5mm {s['success@5mm']:.2f}, "
               f"median final error {s['median_error_mm']:.3g} mm, snaps {s['snap_rate']:.2f}")
     # The figure: every policy on the same seeded goals; the first goal the first policy
     # reaches (episode 0 if it reaches none) is drawn, with its tip error and commands.
-    runs = {name: _episodes(pol, venv, args.seed) for name, pol in policies.items()}
+    runs = {name: _episodes(pol, env, args.seed) for name, (pol, env) in policies.items()}
     first = next(iter(runs.values()))
     hits = np.flatnonzero(first["dist"][:, -1] <= 1e-3)
     k = int(hits[0]) if len(hits) else 0
