@@ -213,6 +213,9 @@ def _figures(results: dict, out: Path, run_dirs: list[Path]) -> list[Path]:
         fig.savefig(p, dpi=110)
         paths.append(p)
 
+    if not results:                       # learning curves of run folders only
+        _learning_curves(out, run_dirs, save, Figure)
+        return paths
     # final error histogram
     fig = Figure(figsize=(7, 4))
     ax = fig.add_subplot()
@@ -264,7 +267,13 @@ def _figures(results: dict, out: Path, run_dirs: list[Path]) -> list[Path]:
             ax2.legend(fontsize=6, ncol=2)
         fig.suptitle(f"{name}: tip error and actuator forces/torques")
         save(fig, f"trajectories_{name}.png")
-    # learning curves against wall-clock time (what a 2-core budget buys)
+    _learning_curves(out, run_dirs, save, Figure)
+    return paths
+
+
+def _learning_curves(out: Path, run_dirs: list[Path], save, Figure) -> bool:
+    """Learning curves against steps and wall-clock time (what a 2-core budget buys) of the
+    run folders that have ``evaluations.npz``; whether there were any."""
     runs = [d for d in run_dirs if (d / "evaluations.npz").exists()]
     if runs:
         fig = Figure(figsize=(11, 3.8))
@@ -276,19 +285,19 @@ def _figures(results: dict, out: Path, run_dirs: list[Path]) -> list[Path]:
             y = (np.asarray(data["successes"]).mean(-1) if "successes" in data
                  and len(data["successes"]) else np.asarray(data["results"]).mean(-1))
             label = d.name
-            ax1.plot(x, y, marker="o", label=label)
+            ax1.plot(x / 1e3, y, marker="o", label=label)
             if t_min is not None:
                 ax2.plot(np.interp(x, steps_at, t_min), y, marker="o", label=label)
-        ax1.set_xlabel("environment steps")
+        ax1.set_xlabel("environment steps [thousands]")
         ax2.set_xlabel("wall-clock time [min] (2 shared CPU cores)")
         for ax in (ax1, ax2):
-            ax.set_ylabel("eval success @ current tolerance")
+            ax.set_ylabel("eval success within 1 mm")
             ax.grid(alpha=0.3)
             ax.legend(fontsize=7)
-        fig.suptitle("learning curves (evaluation callback: seeded selection goals, "
-                     "tolerance of the curriculum at that time)", fontsize=9)
+        fig.suptitle("learning curves (evaluation callback: 200 seeded selection episodes, "
+                     "success within 1 mm)", fontsize=9)
         save(fig, "learning_curve.png")
-    return paths
+    return bool(runs)
 
 
 def _zoo_yaml(path: Path) -> dict:
