@@ -11,7 +11,8 @@ import torch
 import torchpvs as tp
 
 SCENE = tp.load_scene("renda2021_fig3")
-OPTS = tp.SolverOptions(order=4, tol=1e-12)
+# no wall-clock bound: a loaded test machine must not cut a finite-difference solve short
+OPTS = tp.SolverOptions(order=4, tol=1e-12, time_limit=None)
 X0 = torch.tensor([0.09, 0.2085, 0.1, 1.2], dtype=torch.float64)   # away from the D1 kink
 
 
@@ -162,3 +163,87 @@ def test_actuator_stiffness_of_a_batch_of_different_robots():
                                    atol=1e-15)
         np.testing.assert_allclose(actuator_stiffness(e)[0].numpy(), K[i].numpy(),
                                    rtol=1e-10, atol=1e-12 * float(K[i].abs().max()))
+
+
+def _autograd_jacobians(scene, x, F, M, dtype=torch.float64):
+    """Reference: ``(K, J_tip_position)`` by reverse passes through the solver's implicit
+    backward (autograd of the forces and tip position w.r.t. the actuation inputs), one row at
+    a time — the path the closed forms replaced."""
+    N = scene.n_tubes
+    X = x.to(dtype).clone().requires_grad_(True)
+    eq = tp.solve(scene, insertion=X[:, :N], rotation=X[:, N:], tip_force=F, tip_moment=M,
+                  options=tp.SolverOptions(dtype=dtype))
+    tau = torch.cat([eq.actuation_forces, eq.actuation_torques], -1)
+    out = torch.cat([tau, eq.tip_position], -1)
+    rows = [torch.autograd.grad(out[:, i].sum(), X, retain_graph=True)[0]
+            for i in range(out.shape[-1])]
+    G = torch.stack(rows, 1)
+    return G[:, :2 * N], G[:, 2 * N:]
+
+
+@pytest.mark.parametrize("case", ["unloaded", "force", "force_and_moment", "base_at_orifice",
+                                  "three_tubes"])
+def test_closed_form_control_step_equals_the_implicit_backward(case):
+    """``tip_jacobian`` (``P_x - P_q H^-1 U_qx``) and ``actuator_stiffness`` from the solve's own
+    factorization equal autograd through the implicit backward, row by row, on a batch."""
+    from envs.robots import rvim_three_tube
+    from torchpvs.jacobians import actuator_stiffness, tip_jacobian
+
+    scene = rvim_three_tube().scene if case == "three_tubes" else SCENE
+    N = scene.n_tubes
+    # (the Fig. 3 scene's own insertion sits on a kink: one-sided forces; X0 is away from it)
+    base = (torch.tensor([*scene.actuation.insertion, *scene.actuation.rotation],
+                         dtype=torch.float64) if case == "three_tubes" else X0)
+    x = base.repeat(3, 1)
+    x[:, N:] += torch.tensor([0.0, 0.4, -0.9])[:, None] * torch.arange(1, N + 1)
+    if case == "base_at_orifice":
+        x[0, 0] = 0.0
+    F = torch.tensor([0.05, -0.02, 0.0] if "force" in case else [0.0] * 3, dtype=torch.float64)
+    M = torch.tensor([0.0, 2e-3, 1e-3] if "moment" in case else [0.0] * 3, dtype=torch.float64)
+    K_ref, J_ref = _autograd_jacobians(scene, x, F, M)
+    eq = tp.solve(scene, insertion=x[:, :N], rotation=x[:, N:], tip_force=F, tip_moment=M)
+    J = tip_jacobian(eq)
+    K = actuator_stiffness(eq)
+    assert J.shape == (3, 6, 2 * N) and K.shape == (3, 2 * N, 2 * N)
+    np.testing.assert_allclose(J[:, :3].numpy(), J_ref.numpy(), rtol=1e-8,
+                               atol=1e-10 * float(J_ref.abs().max()))
+    # The Schur path symmetrizes (a conservative load). A base at the orifice is a kink of
+    # the energy in D_1: the reported force there is one-sided and carries no gradient.
+    rows = slice(1, None) if case == "base_at_orifice" else slice(None)
+    if case != "force_and_moment":
+        np.testing.assert_allclose(K[rows].numpy(), K_ref[rows].numpy(), rtol=1e-7,
+                                   atol=1e-9 * float(K_ref.abs().max()))
+    step = eq.jacobians(compliance=False)
+    assert step.tip_compliance is None
+    np.testing.assert_allclose(step.tip_jacobian.numpy(), J.numpy(), rtol=0, atol=0)
+    np.testing.assert_allclose(step.actuator_stiffness.numpy(), K.numpy(), rtol=0, atol=0)
+
+
+def test_tip_jacobian_rotation_rows_match_finite_differences():
+    """The rotation rows of the tip Jacobian: the spatial angular velocity of the tip frame,
+    ``vee(dR R^T)`` by central differences of full solves."""
+    from torchpvs.jacobians import tip_jacobian
+
+    eq = _solve(X0, None, None)
+    J = tip_jacobian(eq)[0, 3:]
+    h = 1e-6
+    steps = torch.zeros(8, 4, dtype=torch.float64)
+    for i in range(4):
+        steps[2 * i, i], steps[2 * i + 1, i] = h, -h
+    ex = _solve(X0 + steps, None, None)
+    R = eq.tip_rotation[0]
+    dR = (ex.tip_rotation[0::2] - ex.tip_rotation[1::2]) / (2 * h)          # (4, 3, 3)
+    W = dR @ R.T
+    omega = torch.stack([W[:, 2, 1], W[:, 0, 2], W[:, 1, 0]], 0)            # (3, 4)
+    assert (J - omega).abs().max() <= 1e-6 * omega.abs().max()
+
+
+def test_tip_jacobian_in_float32_agrees_with_float64():
+    from torchpvs.jacobians import tip_jacobian
+
+    x = X0[None]
+    J64 = tip_jacobian(tp.solve(SCENE, insertion=x[:, :2], rotation=x[:, 2:]))
+    J32 = tip_jacobian(tp.solve(SCENE, insertion=x[:, :2].float(), rotation=x[:, 2:].float(),
+                                options=tp.SolverOptions(dtype=torch.float32)))
+    assert J32.dtype == torch.float32 and bool(torch.isfinite(J32).all())
+    assert (J32.double() - J64).abs().max() <= 1e-3 * J64.abs().max()

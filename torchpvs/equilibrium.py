@@ -269,11 +269,12 @@ class Equilibrium:
                 g = g @ steps[:, :, i]
         return g[..., :3, 3]
 
-    def jacobians(self):
+    def jacobians(self, *, compliance: bool = True):
         """Actuator stiffness, tip Jacobian, force-control Jacobian and tip compliance
-        (:func:`torchpvs.jacobians.control_jacobians`)."""
+        (:func:`torchpvs.jacobians.control_jacobians`; ``compliance=False`` skips the
+        compliance, which an unloaded equilibrium gets from one extra solve)."""
         from .jacobians import control_jacobians
-        return control_jacobians(self)
+        return control_jacobians(self, compliance=compliance)
 
     # ------------------------------------------------------------------------------------------
     def as_contract(self, index: int = 0, backbone_points: int | None = None) -> dict[str, Any]:

@@ -144,7 +144,7 @@ def adjoint_factor(q_star, info, D, alpha, F, M, EI, GJ, L, Ls, coef):
             NearSingularStiffnessWarning, stacklevel=4)
     eye = torch.eye(H.shape[-1], dtype=H.dtype, device=H.device)
     A = Hs + info["ridge"] * eye
-    if info["has_moment"]:
+    if info["has_moment"] and bool((M != 0).any()):
         # A dead tip moment is not conservative: the exact tangent adds the antisymmetric
         # K_ab = 1/2 M . (theta_a x theta_b) = -1/2 J_theta^T [M]x J_theta (see mechanics).
         Jt = _rotation_jacobian(q_star, info, D, alpha, F, M, EI, GJ, L, Ls, coef)

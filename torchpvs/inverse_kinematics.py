@@ -24,6 +24,7 @@ from dataclasses import dataclass
 
 import torch
 
+from .jacobians import tip_jacobian
 from .scene import Scene, load_scene
 from .solver import SolverOptions, check_actuation, check_time_limit, solve, within_deadline
 
@@ -166,17 +167,15 @@ def inverse_kinematics(scene: Scene | str, goal, *, starts: int = 8, tol: float 
         if deadline is not None and time.perf_counter() > deadline:
             timed_out = True
             break
-        # Solve at the trial actuations (with the tip Jacobian on the way).
-        Dg, Ag = D.clone().requires_grad_(True), A.clone().requires_grad_(True)
-        eq = solve(scene, insertion=Dg, rotation=Ag, options=within_deadline(opts, deadline),
+        # Solve at the trial actuations.
+        eq = solve(scene, insertion=D, rotation=A, options=within_deadline(opts, deadline),
                    initial=q)
         p = eq.tip_position
         r_new = target - p.detach()
         e_new = r_new.norm(dim=-1)
         ok = eq.converged & (e_new < err)                # accept: the error fell
-        J_new = torch.stack([torch.cat(torch.autograd.grad(p[:, i].sum(), (Dg, Ag),
-                                                           retain_graph=i < 2), -1)
-                             for i in range(3)], 1)
+        # closed form from the solve's own factorization (torchpvs.jacobians)
+        J_new = tip_jacobian(eq)[:, :3]
         keep = ok[:, None]
         xD, xA = torch.where(keep, D, xD), torch.where(keep, A, xA)
         r = torch.where(keep, r_new, r)

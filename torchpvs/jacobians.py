@@ -14,8 +14,13 @@ With actuator coordinates ``x = (D_1..D_N, alpha_1..alpha_N)`` and generalized f
   rotation is a zero-stiffness mode; ``force_rank`` reports the numerical rank of ``K_x``).
 * tip compliance ``C = d(tip)/d(F, M)`` (6 x 6) under the current load at fixed actuation.
 
-All are exact derivatives of the discrete model (implicit-function theorem), computed by reverse
-passes through :mod:`torchpvs.implicit`, batched over the equilibrium's elements.
+All are exact derivatives of the discrete model (implicit-function theorem), batched over the
+equilibrium's elements. Without a tip moment they are closed forms in the equilibrium's own
+factorization of the stiffness ``H``: ``K_x = U_xx - U_xq H^-1 U_qx``, ``J_x = P_x - P_q H^-1
+U_qx`` and ``C = P_q H^-1 P_q^T`` (``P`` the tip twist, subscripts partial derivatives at fixed
+``q`` or ``x``), with the partials from one reverse pass each over the batch repeated per output
+row. Under a dead tip moment (non-conservative) ``K_x`` and ``J_x`` go through the implicit
+backward of :mod:`torchpvs.implicit` instead.
 """
 
 from __future__ import annotations
@@ -26,36 +31,24 @@ import torch
 
 from .forces import closed_form_partials
 from .implicit import differentiable_outputs, full_hessian
-from .mechanics import potential, skew_vee
+from .mechanics import potential, skew_vee, tip_pose
 from .sections import TubeTensors, build_layout, tube_rows
 
-__all__ = ["ControlJacobians", "actuator_stiffness", "control_jacobians"]
+__all__ = ["ControlJacobians", "actuator_stiffness", "control_jacobians", "tip_jacobian"]
 
 
 @dataclass(frozen=True)
 class ControlJacobians:
     """See the module docstring. Shapes: ``actuator_stiffness (B, 2N, 2N)``,
     ``tip_jacobian (B, 6, 2N)``, ``force_jacobian (B, 6, 2N)``, ``tip_compliance (B, 6, 6)``,
-    ``force_rank (B,)``. Units follow ``x = (D [m], alpha [rad])``, ``tau = (N, N·m)``."""
+    ``force_rank (B,)``. Units follow ``x = (D [m], alpha [rad])``, ``tau = (N, N·m)``.
+    ``tip_compliance`` is ``None`` when it was not asked for (``compliance=False``)."""
 
     actuator_stiffness: torch.Tensor
     tip_jacobian: torch.Tensor
     force_jacobian: torch.Tensor
-    tip_compliance: torch.Tensor
+    tip_compliance: torch.Tensor | None
     force_rank: torch.Tensor
-
-
-def _rows(outputs: torch.Tensor, inputs: tuple[torch.Tensor, ...]) -> list[torch.Tensor]:
-    """Per-element Jacobian rows: ``outputs (B, m)`` w.r.t. each input ``(B, k)`` -> list of
-    ``(B, m, k)``. Elements are independent, so one reverse pass per output column suffices."""
-    B, m = outputs.shape
-    cols: list[list[torch.Tensor]] = [[] for _ in inputs]
-    for i in range(m):
-        grads = torch.autograd.grad(outputs[:, i].sum(), inputs, retain_graph=True,
-                                    allow_unused=True)
-        for c, (g, x) in enumerate(zip(grads, inputs, strict=True)):
-            cols[c].append(torch.zeros_like(x) if g is None else g)
-    return [torch.stack(c, 1) for c in cols]
 
 
 def _adjoint_rows(eq, rows: torch.Tensor):
@@ -97,11 +90,16 @@ def _replicated(eq, m: int, rows: torch.Tensor):
     return eq.q.detach()[idx], rep, inputs, tube_rows(ctx["tubes"], idx)
 
 
+def _rows_of(eq, rows) -> torch.Tensor:
+    q0 = eq.q
+    return (torch.arange(q0.shape[0], device=q0.device) if rows is None
+            else torch.as_tensor(rows, device=q0.device).long())
+
+
 def actuator_stiffness(eq, rows=None) -> torch.Tensor:
     """``K_x = dtau/dx`` ``(B, 2N, 2N)`` [N/m, N, N·m] at an :class:`~torchpvs.Equilibrium`
     (``(len(rows), 2N, 2N)`` for the batch rows ``rows`` only, when given) —
-    the first block of :func:`control_jacobians` alone, without its re-solve for load
-    coordinates (which only the tip compliance needs). The cheap path for time stepping
+    the first block of :func:`control_jacobians` alone. The cheap path for time stepping
     (torchpvs environments).
 
     Without a tip moment, as the Schur complement ``U_xx - U_xq H^-1 U_qx``: the mixed and
@@ -111,12 +109,19 @@ def actuator_stiffness(eq, rows=None) -> torch.Tensor:
     ``H^-1 U_qx`` from the equilibrium's adjoint
     factorization (shared with the implicit backward). Under a tip moment (non-conservative)
     through the implicit backward, in one reverse pass over the repeated batch."""
+    return _schur(eq, _rows_of(eq, rows))[0]
+
+
+def _schur(eq, rows: torch.Tensor):
+    """``(K (B, 2N, 2N), Z (B, nq, 2N) or None)``: the actuator stiffness of batch ``rows`` and,
+    for a conservative load, ``Z = H^-1 U_qx`` (so ``dq*/dx = -Z``; zero on the inactive
+    coordinates). ``Z`` is ``None`` under a tip moment (the stiffness then comes from the
+    implicit backward)."""
     q0 = eq.q
-    rows = (torch.arange(q0.shape[0], device=q0.device) if rows is None
-            else torch.as_tensor(rows, device=q0.device).long())
     B, m = len(rows), 2 * eq._ctx["D"].shape[1]
     if B == 0:
-        return torch.zeros(0, m, m, dtype=q0.dtype, device=q0.device)
+        return (torch.zeros(0, m, m, dtype=q0.dtype, device=q0.device),
+                torch.zeros(0, q0.shape[-1], m, dtype=q0.dtype, device=q0.device))
     lu, piv, scale = _adjoint_rows(eq, rows)
     ctx = eq._ctx
     qmask = ctx["implicit_info"]["qmask"][rows]                           # (B, nq)
@@ -136,7 +141,7 @@ def actuator_stiffness(eq, rows=None) -> torch.Tensor:
                 out = differentiable_outputs(q, info, D, A, F, M, tubes)
                 tau = torch.cat([out["forces"], out["torques"]], -1)
                 KD, KA = torch.autograd.grad((tau * pick).sum(), (D, A))
-            return torch.cat([KD, KA], -1).reshape(B, m, m)
+            return torch.cat([KD, KA], -1).reshape(B, m, m), None
         q = q.requires_grad_(True)
         with torch.enable_grad():
             lay = build_layout(tubes, D, A, F, M, info["loaded"], info["disc"])
@@ -144,12 +149,70 @@ def actuator_stiffness(eq, rows=None) -> torch.Tensor:
             tau = torch.cat(torch.autograd.grad(U.sum(), (D, A), create_graph=True), -1)
             Uxq, UxD, UxA = torch.autograd.grad((tau * pick).sum(), (q, D, A))
         Uxx = torch.cat([UxD, UxA], -1).reshape(B, m, m)
-    s = scale.sqrt()
     Uqx = (Uxq.reshape(B, m, -1) * qmask[:, None]).transpose(1, 2)          # (B, nq, 2N)
-    # The factors are of the transposed scaled tangent (adjoint system): solve its transpose.
-    Z = torch.linalg.lu_solve(lu, piv, Uqx / s[..., None], adjoint=True) / s[..., None]
-    K = Uxx - Uqx.transpose(1, 2) @ (Z * qmask[..., None])
-    return 0.5 * (K + K.transpose(1, 2))
+    Z = _tangent_solve((lu, piv, scale), Uqx) * qmask[..., None]
+    K = Uxx - Uqx.transpose(1, 2) @ Z
+    return 0.5 * (K + K.transpose(1, 2)), Z
+
+
+def _tangent_solve(factors, rhs: torch.Tensor) -> torch.Tensor:
+    """``T^-1 rhs`` ``(B, nq, k)`` with ``T`` the equilibrium's tangent, from the adjoint
+    factors ``(lu, pivots, scale)`` (LU of the Jacobi-scaled ``T^T``: solve its transpose)."""
+    lu, piv, scale = factors
+    s = scale.sqrt()[..., None]
+    return torch.linalg.lu_solve(lu, piv, rhs / s, adjoint=True) / s
+
+
+def _tip_partials(eq, rows: torch.Tensor):
+    """``(P_q (B, 6, nq), P_x (B, 6, 2N))``: the tip twist (position [m], spatial rotation
+    [rad]) per coordinate and per actuator at fixed ``q``, zero on the inactive coordinates —
+    one reverse pass over the batch repeated 6 times (:func:`_replicated`)."""
+    B = len(rows)
+    q, info, (D, A, F, M), tubes = _replicated(eq, 6, rows)
+    q, D, A = (t.requires_grad_(True) for t in (q, D, A))
+    pick = torch.eye(6, dtype=q.dtype, device=q.device).repeat(B, 1)        # (B 6, 6)
+    with torch.enable_grad():
+        lay = build_layout(tubes, D, A, F, M, info["loaded"], info["disc"])
+        p, R, _ = tip_pose(q, lay, info["tab"])
+        tip = torch.cat([p, skew_vee(R @ R.detach().transpose(-1, -2))], -1)
+        Pq, PD, PA = torch.autograd.grad((tip * pick).sum(), (q, D, A))
+    qmask = eq._ctx["implicit_info"]["qmask"][rows]
+    return (Pq.reshape(B, 6, -1) * qmask[:, None],
+            torch.cat([PD, PA], -1).reshape(B, 6, -1))
+
+
+def tip_jacobian(eq, rows=None) -> torch.Tensor:
+    """``J_x = d(tip)/dx`` ``(B, 6, 2N)`` at an :class:`~torchpvs.Equilibrium` (batch ``rows``
+    only, when given): rows ``(p_x, p_y, p_z, omega_x, omega_y, omega_z)`` [m, rad] per unit
+    actuation ``x = (D [m], alpha [rad])``, the second block of :func:`control_jacobians`.
+
+    Without a tip moment in closed form, ``J_x = P_x - P_q H^-1 U_qx``: the tip's partials at
+    fixed ``q`` (:func:`_tip_partials`) and ``H^-1 U_qx`` from the actuator stiffness's own
+    solve with the equilibrium's factorization — no re-solve and no reverse pass through the
+    implicit backward. Under a tip moment through the implicit backward, one reverse pass over
+    the batch repeated 6 times."""
+    return _control_blocks(eq, _rows_of(eq, rows))[1]
+
+
+def _control_blocks(eq, rows: torch.Tensor):
+    """``(K (B, 2N, 2N), J_x (B, 6, 2N))`` of batch ``rows``."""
+    K, Z = _schur(eq, rows)
+    if Z is not None:
+        Pq, Px = _tip_partials(eq, rows)
+        return K, Px - Pq @ Z
+    B = len(rows)
+    lu, piv, scale = _adjoint_rows(eq, rows)
+    q, info, (D, A, F, M), tubes = _replicated(eq, 6, rows)
+    D.requires_grad_(True)
+    A.requires_grad_(True)
+    info["_adjoint"] = tuple(t.repeat_interleave(6, 0) for t in (lu, piv, scale))
+    pick = torch.eye(6, dtype=q.dtype, device=q.device).repeat(B, 1)
+    with torch.enable_grad():
+        out = differentiable_outputs(q, info, D, A, F, M, tubes)
+        R0 = out["R"].detach()
+        tip = torch.cat([out["tip"], skew_vee(out["R"] @ R0.transpose(-1, -2))], -1)
+        JD, JA = torch.autograd.grad((tip * pick).sum(), (D, A))
+    return K, torch.cat([JD, JA], -1).reshape(B, 6, -1)
 
 
 def _rotation_rows_from_hessian(eq, rows, D0):
@@ -187,34 +250,32 @@ def _rotation_rows_from_hessian(eq, rows, D0):
     return Uxq, Uxx
 
 
-def control_jacobians(eq, *, rank_tol: float = 1e-9) -> ControlJacobians:
-    """:class:`ControlJacobians` of an :class:`~torchpvs.Equilibrium` (all elements)."""
-    ctx = eq._ctx
-    if not ctx["implicit_info"]["with_load"]:
-        # The compliance needs the load term and coordinates on unloaded distal sections.
-        from dataclasses import replace
+def control_jacobians(eq, *, compliance: bool = True,
+                      rank_tol: float = 1e-9) -> ControlJacobians:
+    """:class:`ControlJacobians` of an :class:`~torchpvs.Equilibrium` (all elements).
 
-        opts = replace(ctx["options"], load_coordinates=True, order=eq.order)
-        eq = ctx["resolve"](opts, eq)
-        ctx = eq._ctx
-    info = ctx["implicit_info"]
-    tubes: TubeTensors = ctx["tubes"]
-    D = ctx["D"].detach().clone().requires_grad_(True)
-    A = ctx["alpha"].detach().clone().requires_grad_(True)
-    F = ctx["F"].detach().clone().requires_grad_(True)
-    M = ctx["M"].detach().clone().requires_grad_(True)
-    with torch.enable_grad():
-        out = differentiable_outputs(eq.q.detach(), info, D, A, F, M, tubes)
-        tau = torch.cat([out["forces"], out["torques"]], -1)                # (B, 2N)
-        R0 = out["R"].detach()
-        tip = torch.cat([out["tip"], skew_vee(out["R"] @ R0.transpose(-1, -2))], -1)
-        KD, KA = _rows(tau, (D, A))
-        JD, JA, CF, CM = _rows(tip, (D, A, F, M))
-    K = torch.cat([KD, KA], -1).detach()
-    if not info["has_moment"]:
-        K = 0.5 * (K + K.transpose(1, 2))  # a Hessian of U*: symmetric up to rounding
-    J = torch.cat([JD, JA], -1).detach()
-    C = torch.cat([CF, CM], -1).detach()
+    The actuator stiffness and tip Jacobian come from the equilibrium's own factorization
+    (:func:`actuator_stiffness`, :func:`tip_jacobian`). The tip compliance
+    ``C = P_q T^-1 P_q^T`` (``T`` the tangent, ``P_q`` the tip twist per coordinate: a dead load
+    ``w = (F, M)`` enters the residual as ``-P_q^T w``) needs coordinates on the distal
+    single-tube sections, which an unloaded solve leaves out (they are exact there without a
+    load): for an unloaded equilibrium it re-solves once with ``load_coordinates=True``, warm
+    from this one. ``compliance=False`` skips it (``tip_compliance`` is then ``None``): the
+    control step of a servo loop."""
+    rows = _rows_of(eq, None)
+    K, J = _control_blocks(eq, rows)
+    K, J = K.detach(), J.detach()
+    C = None
+    if compliance:
+        eqc = eq
+        if not eq._ctx["implicit_info"]["with_load"]:
+            from dataclasses import replace
+
+            ctx = eq._ctx
+            opts = replace(ctx["options"], load_coordinates=True, order=eq.order)
+            eqc = ctx["resolve"](opts, eq)
+        Pq = _tip_partials(eqc, rows)[0]
+        C = (Pq @ _tangent_solve(_adjoint_rows(eqc, rows), Pq.transpose(1, 2))).detach()
     sv = torch.linalg.svdvals(K)
     rank = (sv > rank_tol * sv[:, :1]).sum(-1)
     Kp = torch.linalg.pinv(K, rtol=rank_tol)

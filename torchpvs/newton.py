@@ -161,8 +161,10 @@ def derivatives(q: torch.Tensor, prob: Problem, energy: bool = False):
 
 
 def _with_load_terms(q, prob: Problem, g, H):
-    """``(g, H)`` plus the tip load's terms where the problem has a load."""
-    if prob.with_load:
+    """``(g, H)`` plus the tip load's terms where the problem has a load. A batch whose loads
+    are all zero (coordinates kept for a load: ``SolverOptions.load_coordinates``) skips them:
+    the terms are then exactly zero, and their ``vmap(jacfwd(grad))`` is most of a solve."""
+    if prob.with_load and bool((prob.lay.force != 0).any() | (prob.lay.moment != 0).any()):
         Hl, gl = _load_hessian(prob.tab, prob.has_moment)(
             q, prob.lay, pose_constants(prob.maps), prob.maps["cidx"], q.detach())
         g = g + gl

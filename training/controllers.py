@@ -17,6 +17,7 @@ import torch
 
 import torchpvs
 from envs.robots import ENV_SOLVER_OPTIONS, solve_batch
+from torchpvs.jacobians import tip_jacobian as tip_jacobian_of
 
 __all__ = ["read_state", "env_robot", "env_config", "controller_model",
            "PlanThenServoController", "PlanThenServoFeedbackController",
@@ -27,14 +28,13 @@ __all__ = ["read_state", "env_robot", "env_config", "controller_model",
 
 def tip_jacobian(robot, x: np.ndarray, initial=None) -> tuple[np.ndarray, np.ndarray]:
     """Tip positions ``(B, 3)`` [m] and ``d tip / dx`` ``(B, 3, 2N)`` [m/m, m/rad] at actuator
-    coordinates ``x (B, 2N)``, through the solver's implicit backward (3 reverse passes)."""
+    coordinates ``x (B, 2N)``: one solve and the closed-form Jacobian from its factorization
+    (:func:`torchpvs.jacobians.tip_jacobian`)."""
     N = robot.n_tubes
-    X = torch.as_tensor(x, dtype=torch.float64).clone().requires_grad_(True)
+    X = torch.as_tensor(x, dtype=torch.float64)
     eq = torchpvs.solve(robot.scene, insertion=X[:, :N], rotation=X[:, N:],
                         options=ENV_SOLVER_OPTIONS, initial=initial)
-    rows = [torch.autograd.grad(eq.tip_position[:, i].sum(), X, retain_graph=i < 2)[0]
-            for i in range(3)]
-    return eq.tip_position.detach().numpy(), torch.stack(rows, 1).numpy()
+    return eq.tip_position.numpy(), tip_jacobian_of(eq)[:, :3].numpy()
 
 
 #: [s] added to the travel time of a plan that ends near +-180 deg relative rotation.
@@ -598,11 +598,9 @@ class PlanThenServoAdaptiveController(PlanThenServoFeedbackController):
 
     def _model_jacobian(self, x, rows):
         from envs.plant import solve_robots
-        X = torch.as_tensor(x, dtype=torch.float64).clone().requires_grad_(True)
-        eq = solve_robots(self.robot, X, self.factors[rows])
-        J = [torch.autograd.grad(eq.tip_position[:, i].sum(), X, retain_graph=i < 2)[0]
-             for i in range(3)]
-        return eq.tip_position.detach().numpy(), torch.stack(J, 1).numpy()
+        eq = solve_robots(self.robot, torch.as_tensor(x, dtype=torch.float64),
+                          self.factors[rows])
+        return eq.tip_position.numpy(), tip_jacobian_of(eq)[:, :3].numpy()
 
     def _model_load(self, x, rows):
         from envs.plant import solve_robots
