@@ -7,7 +7,7 @@ outliers. ``torchpvs.calibrate`` fits the PVS model to them; the example prints 
 (values, standard deviations, identifiability) and the tip error on 40 held-out actuations
 before and after, and saves a histogram of those errors. Usage::
 
-    MPLBACKEND=Agg python examples/calibration.py [--out DIR]
+    python examples/calibration.py [--measurements 60] [--out DIR]
 
 ``--out docs/figures`` regenerates the documentation's figure (the default is a scratch
 folder).
@@ -15,22 +15,17 @@ folder).
 
 from __future__ import annotations
 
-import argparse
-from pathlib import Path
-
 import numpy as np
 import torch
+from _common import figure, parse_args, save
 
 import torchpvs
 from torchpvs.testing import feasible_actuations, scaled_tubes, standard_tips
 
 
 def main(argv=None) -> int:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", default="examples_out", help="folder for calibration.png")
-    ap.add_argument("--measurements", type=int, default=60)
-    args = ap.parse_args(argv)
-    torch.set_num_threads(1)
+    args = parse_args(__doc__, argv, extra=lambda ap: ap.add_argument(
+        "--measurements", type=int, default=60))
     rng = np.random.default_rng(7)
     nominal = torchpvs.load_scene("renda2021_fig3")
     real = scaled_tubes(nominal, precurvature=(1.08, 0.93), E=(1.1, 0.92), G=(0.95, 1.07))
@@ -59,11 +54,8 @@ def main(argv=None) -> int:
         print(f"held-out tip error, {name:>16}: RMS {np.sqrt(np.mean(e ** 2)):.3f} mm, "
               f"max {e.max():.3f} mm")
 
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
-
-    fig, ax = plt.subplots(figsize=(6, 3.5))
+    fig = figure((6, 3.5))
+    ax = fig.add_subplot()
     bins = np.logspace(-3, 1.3, 40)
     ax.hist(before, bins=bins, alpha=0.6, label="datasheet model")
     ax.hist(after, bins=bins, alpha=0.6, label="calibrated (60 noisy tips)")
@@ -71,11 +63,7 @@ def main(argv=None) -> int:
     ax.set(xscale="log", xlabel="held-out tip error [mm]", ylabel="actuations",
            title="calibrating the Fig. 3 robot from measured tips")
     ax.legend(fontsize=8)
-    fig.tight_layout()
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out / "calibration.png", dpi=120)
-    print(f"figure: {out / 'calibration.png'}")
+    save(fig, args.out, "calibration.png")
     return 0
 
 

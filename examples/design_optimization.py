@@ -4,34 +4,26 @@ through given targets at given actuations, with gradients from the implicit-func
 
 Targets are the tips of a hidden "true" design; the optimisation starts from another design and
 minimises the mean squared tip distance with L-BFGS. Prints the loss per iteration and saves
-``docs/figures/design_optimization.png``. Usage::
+``design_optimization.png`` into ``--out`` (default ``examples_out/``; ``--out docs/figures``
+regenerates the documentation's figure). Usage::
 
-    MPLBACKEND=Agg python examples/design_optimization.py [--iters 15] [--out docs/figures]
+    python examples/design_optimization.py [--iters 15] [--out DIR]
 """
 
 from __future__ import annotations
 
-import argparse
 import math
 import time
-from pathlib import Path
 
-import matplotlib
+import torch
+from _common import figure, parse_args, save
 
-matplotlib.use("Agg")
-
-import torch  # noqa: E402
-from matplotlib.backends.backend_agg import FigureCanvasAgg  # noqa: E402
-from matplotlib.figure import Figure  # noqa: E402
-
-import torchpvs as tp  # noqa: E402
+import torchpvs as tp
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--iters", type=int, default=15)
-    ap.add_argument("--out", default="docs/figures")
-    args = ap.parse_args()
+    args = parse_args(__doc__, threads=None,
+                      extra=lambda ap: ap.add_argument("--iters", type=int, default=15))
     torch.manual_seed(0)
     scene = tp.load_scene("renda2021_fig3")
     opts = tp.SolverOptions(order=3, n_magnus=16, compute_forces=False)
@@ -71,8 +63,7 @@ def main() -> None:
             break
     print(f"{len(history)} iterations in {time.perf_counter() - t0:.1f} s; true kappa = (12, 16)")
 
-    fig = Figure(figsize=(10, 4))
-    FigureCanvasAgg(fig)
+    fig = figure((10, 4))
     ax1, ax2 = fig.add_subplot(121), fig.add_subplot(122)
     ax1.semilogy([1e3 * h for h in history], "o-", ms=3)
     ax1.set(xlabel="iteration", ylabel="rms tip error [mm]", title="design loss (L-BFGS)")
@@ -85,11 +76,7 @@ def main() -> None:
                  ms=10)
     ax2.set(xlabel="x [mm]", ylabel="z [mm]", title="optimised backbones (x: targets)")
     ax2.set_aspect("equal")
-    fig.tight_layout()
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out / "design_optimization.png", dpi=120)
-    print(f"saved {out / 'design_optimization.png'}")
+    save(fig, args.out, "design_optimization.png")
 
 
 if __name__ == "__main__":

@@ -13,38 +13,27 @@ from ``torchpvs.force_control.commanded_force_jacobian``)::
 
 The target is the tip of an independent position solve at ``alpha = (-0.5, 1.5) rad``, so it
 is reachable; the controller does not know that actuation. Saves
-``docs/figures/force_controller.png`` (tip error vs iteration, tip path). Usage::
+``force_controller.png`` (tip error vs iteration, tip path) into ``--out`` (default
+``examples_out/``; ``--out docs/figures`` regenerates the documentation's figure). Usage::
 
-    python examples/force_controller.py [--out docs/figures]
+    python examples/force_controller.py [--iterations 15] [--out DIR]
 """
 
 from __future__ import annotations
 
-import argparse
 import math
 import time
-from pathlib import Path
 
-import matplotlib
+import torch
+from _common import figure, parse_args, save
 
-matplotlib.use("Agg")
-
-import torch  # noqa: E402
-from matplotlib.backends.backend_agg import FigureCanvasAgg  # noqa: E402
-from matplotlib.figure import Figure  # noqa: E402
-
-import torchpvs as tp  # noqa: E402
-from torchpvs.force_control import commanded_force_jacobian  # noqa: E402
-
-NAN = float("nan")
+import torchpvs as tp
+from torchpvs.force_control import commanded_force_jacobian
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", default="docs/figures")
-    ap.add_argument("--iterations", type=int, default=15)
-    args = ap.parse_args()
-    torch.set_num_threads(1)
+    args = parse_args(__doc__, extra=lambda ap: ap.add_argument("--iterations", type=int,
+                                                                 default=15))
     t0 = time.perf_counter()
     scene = tp.load_scene("renda2021_fig3").with_actuation(insertion=[0.095, 0.2085])
     opts = tp.SolverOptions(order=4, n_magnus=16)
@@ -85,8 +74,7 @@ def main() -> None:
           f"rotation {[round(float(v), 6) for v in res.rotation[0]]} rad vs {alpha_goal} "
           f"({time.perf_counter() - t0:.1f} s)")
 
-    fig = Figure(figsize=(10, 4))
-    FigureCanvasAgg(fig)
+    fig = figure((10, 4))
     ax1, ax2 = fig.add_subplot(121), fig.add_subplot(122)
     ax1.semilogy(range(len(errors)), [1e3 * max(e, 1e-12) for e in errors], "o-")
     ax1.set(xlabel="controller iteration", ylabel="|tip - target| [mm]",
@@ -101,11 +89,7 @@ def main() -> None:
             title="tip path (tip load 0.3 N along -y)")
     ax2.set_aspect("equal", adjustable="datalim")
     ax2.legend()
-    fig.tight_layout()
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out / "force_controller.png", dpi=120)
-    print(f"saved {out / 'force_controller.png'}")
+    save(fig, args.out, "force_controller.png")
     if not math.isfinite(errors[-1]):
         raise SystemExit("controller diverged")
 

@@ -1,6 +1,7 @@
 """Regenerate the validation figures of Renda et al., RA-L 2021, with torchpvs.
 
-Figures (PNG, written to ``--out``, default ``docs/figures``):
+Figures (PNG, written to ``--out``: default ``examples_out/``, ``--out docs/figures`` regenerates
+the documentation's figures):
 
 * ``fig2_section3b_equilibria.png`` -- paper Fig. 2: the three equilibria of the section III-B
   robot (two fully curved tubes, inner tube rotated by 180 deg at the orifice): two stable mirror
@@ -14,7 +15,7 @@ Figures (PNG, written to ``--out``, default ``docs/figures``):
 
 Every number a figure shows is also printed. Usage::
 
-    MPLBACKEND=Agg python examples/paper_figures.py [--out DIR] [--quick]
+    python examples/paper_figures.py [--out DIR] [--quick]
 """
 
 from __future__ import annotations
@@ -30,6 +31,7 @@ import matplotlib
 matplotlib.use("Agg")
 
 import numpy as np  # noqa: E402
+from _common import parser  # noqa: E402
 from matplotlib.backends.backend_agg import FigureCanvasAgg  # noqa: E402
 from matplotlib.figure import Figure  # noqa: E402
 from matplotlib.lines import Line2D  # noqa: E402
@@ -371,10 +373,7 @@ def order_convergence(out: Path, orders, fine_magnus: int = 64) -> None:
 # ---------------------------------------------------------------------------------------------
 
 def main(argv=None) -> None:
-    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0],
-                                 formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("--out", type=Path, default=Path("docs/figures"),
-                    help="output folder (default: docs/figures)")
+    ap = parser(__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--quick", action="store_true",
                     help="fewer steps: 40 deg sweeps, orders 1..5")
     ap.add_argument("--sweep-order", type=int, default=2,

@@ -15,37 +15,26 @@ the orifice), rotating the inner tube (alpha_1 = 0 held, insertions held):
 
 Printed: where each loses stability, cross-checks (the peak of tau along the position sweep vs
 the largest torque the torque-controlled solve can balance; the sign change of dtau/dalpha_2),
-and what lies beyond. Saves ``docs/figures/position_vs_torque.png``. Usage::
+and what lies beyond. Saves ``position_vs_torque.png`` into ``--out`` (default
+``examples_out/``; ``--out docs/figures`` regenerates the documentation's figure). Usage::
 
-    python examples/position_vs_torque_control.py [--out docs/figures]
+    python examples/position_vs_torque_control.py [--out DIR]
 """
 
 from __future__ import annotations
 
-import argparse
 import math
 import time
-from pathlib import Path
 
-import matplotlib
+import torch
+from _common import NAN, figure, parse_args, save
 
-matplotlib.use("Agg")
-
-import torch  # noqa: E402
-from matplotlib.backends.backend_agg import FigureCanvasAgg  # noqa: E402
-from matplotlib.figure import Figure  # noqa: E402
-
-import torchpvs as tp  # noqa: E402
-from torchpvs.jacobians import actuator_stiffness  # noqa: E402
-
-NAN = float("nan")
+import torchpvs as tp
+from torchpvs.jacobians import actuator_stiffness
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", default="docs/figures")
-    args = ap.parse_args()
-    torch.set_num_threads(1)
+    args = parse_args(__doc__)
     t_start = time.perf_counter()
     scene = tp.load_scene("renda2021_section3b")
     opts = tp.SolverOptions(order=4, n_magnus=16)
@@ -135,8 +124,7 @@ def main() -> None:
           f"torque control up to {math.degrees(theta_at(scene, opts, a_tc, last)):.1f} deg")
 
     # --- figure -------------------------------------------------------------------------------
-    fig = Figure(figsize=(13, 4))
-    FigureCanvasAgg(fig)
+    fig = figure((13, 4))
     ax1, ax2, ax3 = fig.add_subplot(131), fig.add_subplot(132), fig.add_subplot(133)
     deg = [math.degrees(a) for a in a_p]
     ax1.plot(deg, tau_p, "C0-", label="position control (branch from 0)")
@@ -160,11 +148,8 @@ def main() -> None:
     ax3.set(xlabel="alpha_2 [deg]", ylabel="actuator stiffness [N m/rad]",
             title="torque control: actuator stiffness")
     ax3.legend(fontsize=7)
-    fig.tight_layout()
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out / "position_vs_torque.png", dpi=120)
-    print(f"saved {out / 'position_vs_torque.png'} ({time.perf_counter() - t_start:.1f} s)")
+    save(fig, args.out, "position_vs_torque.png",
+         note=f" ({time.perf_counter() - t_start:.1f} s)")
 
 
 def fold_theta(cont, fold) -> float:

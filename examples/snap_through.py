@@ -3,33 +3,25 @@
 The inner tube is rotated at the orifice from 0 to 360 deg and back with
 ``torchpvs.continuation``: the followed stable branch ends at a fold past 180 deg, where the
 robot snaps to the mirror branch; the backward sweep snaps at the mirror angle (hysteresis).
-Saves ``docs/figures/snap_through.png``: stability margin and relative rotation theta_2(L_1)
+Saves ``snap_through.png`` into ``--out`` (default ``examples_out/``; ``--out docs/figures``
+regenerates the documentation's figure): stability margin and relative rotation theta_2(L_1)
 along both sweeps, and the tip before/after the forward snap. Usage::
 
-    MPLBACKEND=Agg python examples/snap_through.py [--out docs/figures]
+    python examples/snap_through.py [--out DIR]
 """
 
 from __future__ import annotations
 
-import argparse
 import math
 import time
-from pathlib import Path
 
-import matplotlib
+from _common import figure, parse_args, save
 
-matplotlib.use("Agg")
-
-from matplotlib.backends.backend_agg import FigureCanvasAgg  # noqa: E402
-from matplotlib.figure import Figure  # noqa: E402
-
-import torchpvs as tp  # noqa: E402
+import torchpvs as tp
 
 
 def main() -> None:
-    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    ap.add_argument("--out", default="docs/figures")
-    args = ap.parse_args()
+    args = parse_args(__doc__, threads=None)
     scene = tp.load_scene("renda2021_section3b")
     path = {"rotation": [[0.0, 0.0], [0.0, 2 * math.pi]]}
     opts = tp.SolverOptions(order=4, n_magnus=16)
@@ -44,8 +36,7 @@ def main() -> None:
                   f"({f.kind}), tip jump {1e3 * f.tip_jump:.1f} mm, margin before "
                   f"{f.margin_before:.2e} -> after {f.margin_after:.2e} (dimensionless)")
 
-    fig = Figure(figsize=(12, 4))
-    FigureCanvasAgg(fig)
+    fig = figure((12, 4))
     ax1, ax2, ax3 = fig.add_subplot(131), fig.add_subplot(132), fig.add_subplot(133)
     for res, style, label in ((fwd, "-", "0 -> 360 deg"), (bwd, "--", "360 -> 0 deg")):
         a = [math.degrees(float(v)) for v in res.rotation[:, 1]]
@@ -75,11 +66,7 @@ def main() -> None:
                   f"{1e3 * f.tip_jump:.0f} mm")
     ax3.set_aspect("equal")
     ax3.legend()
-    fig.tight_layout()
-    out = Path(args.out)
-    out.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out / "snap_through.png", dpi=120)
-    print(f"saved {out / 'snap_through.png'}")
+    save(fig, args.out, "snap_through.png")
 
 
 if __name__ == "__main__":

@@ -1,4 +1,16 @@
-"""Test-session setup: a headless matplotlib backend and at most two torch threads."""
+"""Test-session setup and what the test modules share.
+
+- a headless matplotlib backend and at most two torch threads for the session;
+- ``one_thread``: a fixture pinning torch to one thread for a test; the hard-case suite
+  (``tests/hard/``) runs every module under it;
+- ``E, G``: the nitinol moduli of the paper's Table I [Pa], and ``two_tubes``: a two-tube robot
+  given overall tube lengths. Test modules import them with ``from conftest import E, G,
+  two_tubes`` (this is the suite's only conftest.py, so the name is unambiguous).
+"""
+
+from __future__ import annotations
+
+from pathlib import Path
 
 import matplotlib
 
@@ -12,16 +24,38 @@ except ImportError:  # pragma: no cover - torch is a hard dependency, but keep s
 if torch is not None:
     torch.set_num_threads(2)
 
+HARD = Path(__file__).resolve().parent / "hard"
+
 
 if torch is not None:
     import pytest
+
+    from torchpvs import testing
+    from torchpvs.testing import E_NITINOL as E  # noqa: F401 - shared with the test modules
+    from torchpvs.testing import G_NITINOL as G
+
+    def two_tubes(L=0.1, k1=9.9, k2=13.8, alpha2=0.0, D=(0.0, 0.0), straight=(0.0, 0.0),
+                  lengths=None, G1=G, G2=G):
+        """:func:`torchpvs.testing.two_tubes` given overall tube lengths (straight part
+        included): ``L`` for both tubes or a pair ``(outer, inner)``, or ``lengths`` (a pair)."""
+        L1, L2 = lengths or ((L, L) if isinstance(L, int | float) else L)
+        return testing.two_tubes(k1, k2, Ls1=straight[0], Lc1=L1 - straight[0],
+                                 Ls2=straight[1], Lc2=L2 - straight[1], D=D,
+                                 alpha=(0.0, alpha2), G1=G1, G2=G2)
 
     @pytest.fixture
     def one_thread():
         """One torch thread for the test (small batches spin-wait badly on two busy cores);
         the previous count is restored after. Use as ``pytestmark =
         pytest.mark.usefixtures("one_thread")`` or as an argument."""
-        from torchpvs.testing import one_thread as _one
+        with testing.one_thread():
+            yield
 
-        with _one():
+    @pytest.fixture(autouse=True, scope="module")
+    def _one_thread_in_hard_suite(request):
+        """The hard-case suite runs its (mostly single-element) solves on one torch thread."""
+        if HARD in Path(str(request.node.path)).resolve().parents:
+            with testing.one_thread():
+                yield
+        else:
             yield

@@ -22,7 +22,23 @@ EXAMPLES = {
 
 
 def test_every_example_is_listed():
-    assert sorted(p.name for p in (ROOT / "examples").glob("*.py")) == sorted(EXAMPLES)
+    """Every script in examples/ is run below (``_common.py`` is the helper they share)."""
+    scripts = [p.name for p in (ROOT / "examples").glob("*.py") if not p.name.startswith("_")]
+    assert sorted(scripts) == sorted(EXAMPLES)
+
+
+def test_examples_write_to_a_scratch_folder_by_default(monkeypatch):
+    """Without ``--out`` an example writes to ``examples_out/`` in the current folder, never
+    over the committed figures in docs/figures (``--out docs/figures`` regenerates those)."""
+    monkeypatch.syspath_prepend(str(ROOT / "examples"))
+    import _common
+
+    assert _common.parse_args("doc", [], threads=None).out == Path("examples_out")
+    assert _common.parse_args("doc", ["--out", "docs/figures"], threads=None).out == \
+        Path("docs/figures")
+    for name in EXAMPLES:
+        text = (ROOT / "examples" / name).read_text()
+        assert 'default="docs/figures"' not in text and "default=Path(\"docs" not in text, name
 
 
 @pytest.mark.parametrize("name", sorted(EXAMPLES))

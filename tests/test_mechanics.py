@@ -1,18 +1,16 @@
 """Stage 4: the closed-form gradient and Hessian against autograd of the energy functional, and
-the Magnus scheme against a closed-form helix."""
+the backbone's closed-form Magnus exponent against the general step (the SE(3) exponential and
+the Magnus step themselves: tests/test_lie.py)."""
 
 from __future__ import annotations
 
-import math
-
 import pytest
-import scipy.linalg
 import torch
 from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import torchpvs as tp
-from torchpvs.lie import SMALL_BATCH_TWISTS, exp_se3, magnus4_step
+from torchpvs.lie import exp_se3, magnus4_step
 from torchpvs.mechanics import (
     build_maps,
     compact_q,
@@ -110,40 +108,6 @@ def test_section_block_is_the_hessian_block_without_angle_basis_terms():
         else:
             assert (blk - full)[:, pairs].abs().max() > 0   # the left-out terms exist
 
-@settings(max_examples=60, deadline=None)
-@given(st.lists(st.floats(-3.0, 3.0), min_size=6, max_size=6),
-       st.sampled_from([1.0, 1e-3, 1e-9, 0.0]))
-def test_exp_se3_matches_the_matrix_exponential(xi, scale):
-    """The closed-form SE(3) exponential, in both of its forms, equals scipy.linalg.expm of the
-    twist matrix (an independent algorithm: Pade with scaling and squaring), down to zero
-    rotation (the series branches). torch.linalg.matrix_exp is not the reference: at
-    xi = (0, 0, 1/32, 0, 0, 0) its sine entry is off by 2.4e-11."""
-    dt = torch.float64
-    x = torch.tensor(xi, dtype=dt)
-    x[:3] *= scale
-    X = torch.zeros(4, 4, dtype=dt)
-    w, v = x[:3], x[3:]
-    X[:3, :3] = torch.tensor([[0.0, -w[2], w[1]], [w[2], 0.0, -w[0]], [-w[1], w[0], 0.0]],
-                             dtype=dt)
-    X[:3, 3] = v
-    ref = torch.from_numpy(scipy.linalg.expm(X.numpy()))
-    # one twist: the 3x3 matrix form; a batch beyond SMALL_BATCH_TWISTS: the entry-wise form
-    assert torch.allclose(exp_se3(x), ref, rtol=1e-12, atol=1e-13)
-    assert torch.allclose(exp_se3(x.expand(SMALL_BATCH_TWISTS + 1, 6))[-1], ref, rtol=1e-12,
-                          atol=1e-13)
-
-
-@pytest.mark.parametrize("form", ["matrix", "entry-wise"])
-def test_exp_se3_gradient_is_finite_at_zero_rotation(form):
-    """gradcheck of both forms at zero rotation, in the series range of c (|w|^2 < 0.1) and
-    beyond it."""
-    def f(x):
-        return exp_se3(x) if form == "matrix" else exp_se3(x.expand(SMALL_BATCH_TWISTS + 1, 6))[-1]
-
-    for w in ([0.0, 0.0, 0.0], [0.1, -0.15, 0.05], [0.3, -0.2, 0.1]):
-        x = torch.tensor(w + [0.1, -0.2, 1.0], dtype=torch.float64, requires_grad=True)
-        assert torch.autograd.gradcheck(f, (x,))
-
 
 @settings(max_examples=40, deadline=None)
 @given(st.lists(st.floats(-300.0, 300.0), min_size=4, max_size=4), st.floats(1e-4, 0.05))
@@ -222,36 +186,6 @@ def test_tip_pose_on_nonempty_sections_equals_the_full_pose(seed, three, loaded)
     for k, qk in enumerate((q, q2)):
         for a, b in zip(stacked, tip_pose(qk, lay, tab, pose_constants(maps)), strict=True):
             assert torch.allclose(a[k], b, rtol=0, atol=1e-14)
-
-
-def test_magnus_step_exact_for_constant_strain_and_4th_order_for_helix():
-    """Constant strain: one Magnus step equals the exponential. Variable strain (a rod whose
-    curvature grows linearly, u_y = c s): error falls ~h^4 per unit length (global order 4)."""
-    dt = torch.float64
-    xi = torch.tensor([0.0, 12.0, 0.0, 0.0, 0.0, 1.0], dtype=dt)
-    g = magnus4_step(xi, xi, torch.tensor(0.1, dtype=dt))
-    assert torch.allclose(g, exp_se3(0.1 * xi), atol=1e-15)
-
-    def integrate(steps):
-        L, c = 0.2, 200.0
-        h = L / steps
-        pose = torch.eye(4, dtype=dt)
-        for i in range(steps):
-            s0 = i * h
-            pts = [s0 + h * (0.5 - 3**0.5 / 6), s0 + h * (0.5 + 3**0.5 / 6)]
-            x1, x2 = (torch.tensor([0.0, c * s, 0.0, 0.0, 0.0, 1.0], dtype=dt) for s in pts)
-            pose = pose @ magnus4_step(x1, x2, torch.tensor(h, dtype=dt))
-        return pose[:3, 3]
-
-    # Planar: the tangent angle is c s^2 / 2, so x(L), z(L) are Fresnel-type integrals.
-    s = torch.linspace(0, 0.2, 200001, dtype=dt)
-    ang = 200.0 * s**2 / 2
-    ref = torch.stack([torch.trapezoid(torch.sin(ang), s), torch.zeros((), dtype=dt),
-                       torch.trapezoid(torch.cos(ang), s)])
-    e1 = (integrate(8) - ref).norm()
-    e2 = (integrate(16) - ref).norm()
-    assert e2 < e1 / 12  # 4th order: ratio ~16
-    assert math.isfinite(float(e2))
 
 
 @pytest.mark.parametrize("size", [1, 2, 3, 4, 5, 7])

@@ -9,10 +9,10 @@ import math
 
 import pytest
 import torch
+from conftest import E, G
 
 import torchpvs as tp
 
-E, G = 58.0e9, 21.5e9
 EI1 = E * math.pi * (2.39e-3**4 - 2.01e-3**4) / 64
 EI2 = E * math.pi * (1.6e-3**4) / 64
 # Geometry recovered by the least-squares fit (docs/actuation-forces.md): both tube bases

@@ -30,10 +30,9 @@ import torchpvs
 from torchpvs import SolverOptions
 from torchpvs.reference import solve_standard
 from torchpvs.scene import Actuation, Scene, Tube
-from torchpvs.testing import random_scene
+from torchpvs.testing import E_NITINOL, G_NITINOL, random_scene  # Table I of Renda et al. 2021
 
 MM = 1e-3
-E_NITINOL, G_NITINOL = 58.0e9, 21.5e9  # Table I of Renda et al. 2021
 
 # Fig. 3 sweeps (docs/physics.md, section III-C): D1 = 93.5 mm, alpha1 = 0.
 SWEEPS = {

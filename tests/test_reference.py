@@ -9,19 +9,10 @@ import math
 
 import numpy as np
 import pytest
+from conftest import E, G, two_tubes
 
-from torchpvs import testing
 from torchpvs.reference import StandardSolution, solve_standard
 from torchpvs.scene import Actuation, Load, Scene, Tube, load_scene
-
-E, G = 58.0e9, 21.5e9  # Table I of Renda et al. 2021
-
-
-def two_tubes(L=(0.1, 0.1), k1=9.9, k2=13.8, alpha2=0.0, D=(0.0, 0.0), straight=(0.0, 0.0),
-              G1=G, G2=G) -> Scene:
-    """:func:`torchpvs.testing.two_tubes` given overall tube lengths (straight part included)."""
-    return testing.two_tubes(k1, k2, Ls1=straight[0], Lc1=L[0] - straight[0], Ls2=straight[1],
-                             Lc2=L[1] - straight[1], D=D, alpha=(0.0, alpha2), G1=G1, G2=G2)
 
 
 def arc(u_xy: np.ndarray, L: float) -> tuple[np.ndarray, np.ndarray]:

@@ -7,21 +7,11 @@ import math
 
 import pytest
 import torch
+from conftest import E, G, two_tubes
 
 import torchpvs as tp
-from torchpvs import testing
 from torchpvs.scene import Actuation, Scene, Tube
 from torchpvs.sections import n_coordinates
-
-E, G = 58.0e9, 21.5e9
-
-
-def two_tubes(L=0.1, k1=9.9, k2=13.8, alpha2=0.0, D=(0.0, 0.0), straight=(0.0, 0.0),
-              lengths=None) -> Scene:
-    """:func:`torchpvs.testing.two_tubes` given overall tube lengths (straight part included)."""
-    L1, L2 = lengths or (L, L)
-    return testing.two_tubes(k1, k2, Ls1=straight[0], Lc1=L1 - straight[0], Ls2=straight[1],
-                             Lc2=L2 - straight[1], D=D, alpha=(0.0, alpha2))
 
 
 def arc_tip(kappa: float, L: float) -> torch.Tensor:
@@ -325,27 +315,6 @@ def test_kernel_returns_the_residual_and_hessian_at_its_solution():
     assert float(eq.residual_norm) == pytest.approx(float(res), rel=1e-6, abs=1e-15)
     H = expand_hessian(H, maps["cidx"], eq.q.shape[-1])
     assert torch.allclose(full_hessian(info), H, rtol=0, atol=1e-13 * float(H.abs().max()))
-
-
-def test_active_index_skips_the_gathers_only_when_everything_is_active():
-    """newton.active_index returns None (compact/take/expand are the identity) exactly when
-    every coordinate of every element is active; otherwise the gathers give each element's
-    active coordinates first."""
-    from torchpvs.newton import active_index, compact, expand, take
-
-    H = torch.randn(2, 4, 4, dtype=torch.float64)
-    v = torch.randn(2, 4, dtype=torch.float64)
-    full = torch.ones(2, 4, dtype=torch.float64)
-    act = active_index(full)
-    assert act is None
-    assert compact(H, act) is H and take(v, act) is v and expand(v, act, 4) is v
-    mask = full.clone()
-    mask[1, 1] = 0.0
-    act = active_index(mask)
-    assert act is not None and act.shape == (2, 4)
-    assert act[1, :3].tolist() == [0, 2, 3]
-    assert torch.equal(compact(H, act)[1, :3, :3], H[1][[0, 2, 3]][:, [0, 2, 3]])
-    assert torch.equal(expand(take(v, act), act, 4), v)
 
 
 @pytest.mark.parametrize("method", ["minimize", "root"])
