@@ -34,6 +34,30 @@ class CTRReachEnv(gym.Env):
         **task: any :class:`~envs.task.ReachConfig` field (``reward``, ``tolerance``,
             ``snap_mode``, ...).
 
+    Action space: ``Box(-1, 1, (2N,), float32)``, insertions first, for ``N`` tubes (outermost
+    first):
+
+    =========  ===========================  ========================================
+    index      force control (default)      joint control
+    =========  ===========================  ========================================
+    0 .. N-1   insertion force of carriage  insertion increment ``a * 1 mm`` [m]
+               ``j``: ``a * force_scale_j``
+               [N] (plus ``g(x)`` with
+               ``compensation=True``)
+    N .. 2N-1  base torque of tube ``j``:   rotation increment ``a * 5 deg`` [rad]
+               ``a * torque_scale_j`` [N·m]
+    =========  ===========================  ========================================
+
+    Observation space: a ``Dict`` with ``observation`` (the table in :mod:`envs.task`:
+    rotations, insertions, elastic loads, the previous action, the tip, the error to the goal,
+    the stability margin, stroke flags; float32), ``achieved_goal = (tip [m], snap flag)`` and
+    ``desired_goal = (goal [m], 0)``, all in the robot's base frame.
+
+    Reward: ``"sparse"`` (default) ``-1`` per step until the measured tip is within
+    ``tolerance`` (1 mm), then ``0``; ``"dense"`` ``-distance / dense_scale``, ``+1`` inside;
+    plus ``snap_penalty`` (``-60``) at a terminating snap. Episodes end at a snap
+    (``snap_mode="terminate"``) or after the registered number of steps (truncation).
+
     Actions must have the action space's shape ``(2N,)`` and be finite: anything else raises
     ``ValueError`` (nothing is reshaped, NaN is never read as 0); finite entries outside
     ``[-1, 1]`` saturate (``info["saturated"]``).
@@ -92,7 +116,7 @@ class CTRReachEnv(gym.Env):
         if not self.task.ready[0]:
             raise gym.error.ResetNeeded("CTRReachEnv.step() before reset(): call reset() first")
         a = self.task.check_action(action, self.action_space.shape)  # raises on NaN/shape
-        reward, terminated, truncated, infos = self.task.step(a[None])
+        reward, terminated, truncated, infos = self.task.step_checked(a[None])
         info = self.task.info_of(infos, 0)
         self._last_info = info
         if self.render_mode == "human":

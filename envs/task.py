@@ -580,11 +580,21 @@ class ReachBatch:
     def step(self, action: np.ndarray):
         """Apply ``action (B, 2N)`` in ``[-1, 1]`` (see :meth:`check_action`); returns
         ``(reward, terminated, truncated, infos)`` with ``infos`` a dict of ``(B,)`` arrays."""
+        self._check_ready()
+        return self.step_checked(self.check_action(action, (self.B, 2 * self.N)))
+
+    def _check_ready(self) -> None:
         if not self.ready.all():
             never = np.flatnonzero(~self.ready).tolist()
             raise ResetNeeded(f"step() before reset(): call reset() first (robot(s) {never} of "
                               f"{self.B} have no episode yet)")
-        a = self.check_action(action, (self.B, 2 * self.N))
+
+    def step_checked(self, a: np.ndarray):
+        """:meth:`step` for an action that :meth:`check_action` already returned (float64
+        ``(B, 2N)``, clipped): the env faces validate against their own action space's shape
+        (so the error names the shape their caller sees) and step through here, so an action
+        is validated once."""
+        self._check_ready()
         tip0 = self.robots.tip.copy()
         if self.config.control == "force":
             tau = a * self.robot.action_scale

@@ -70,7 +70,7 @@ class CTRReachVecEnv(VecEnv):
         self._actions = self.task.check_action(actions, (self.num_envs, *self.action_space.shape))
 
     def step_wait(self):
-        reward, terminated, truncated, infos = self.task.step(self._actions)
+        reward, terminated, truncated, infos = self.task.step_checked(self._actions)
         self.elapsed += 1
         time_limit = self.elapsed >= self.max_episode_steps
         truncated = truncated | time_limit

@@ -130,7 +130,7 @@ class CTRReachVectorEnv(gym.vector.VectorEnv):
             raise gym.error.ResetNeeded("CTRReachVectorEnv.step() before reset(): call "
                                         "reset() first")
         actions = self.task.check_action(actions, (self.num_envs, *self.single_action_space.shape))
-        reward, terminated, truncated, infos = self.task.step(actions)
+        reward, terminated, truncated, infos = self.task.step_checked(actions)
         self.elapsed += 1
         truncated = truncated | (self.elapsed >= self.max_episode_steps)
         obs = self._obs()
