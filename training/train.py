@@ -317,6 +317,7 @@ def train(algo: str, env_id: str, hp: dict, *, steps: int | None = None, seed: i
     if init_from is not None:
         try:
             model.set_parameters(str(init_from), exact_match=True, device="cpu")
+            _load_tensor_variables(model, init_from)
         except (OSError, ValueError, RuntimeError, KeyError) as e:
             raise ValueError(f"--init-from {init_from}: cannot load its networks into a "
                              f"{algo} model of this env ({e})") from None
@@ -346,6 +347,24 @@ def train(algo: str, env_id: str, hp: dict, *, steps: int | None = None, seed: i
         f.write(f"trained {done} steps in {wall:.1f} s ({done / wall:.1f} steps/s)\n")
     print(f"trained {done} steps in {wall:.1f} s -> {run_dir}", flush=True)
     return run_dir
+
+
+def _load_tensor_variables(model, path) -> None:
+    """The saved model's tensor variables (SAC/TQC's ``log_ent_coef``) into ``model``.
+    ``set_parameters`` loads state dicts only, so a fine-tune restarted the entropy coefficient
+    at its initial 1.0 (the force agent had learned 0.02): a 45x entropy bonus under the sparse
+    reward, which drove the policy away from the one it started from (a robust fine-tune
+    evaluated 0/100 after 40k steps, from 0.75 zero-shot)."""
+    import torch
+    from stable_baselines3.common.save_util import load_from_zip_file
+
+    _, _, tensors = load_from_zip_file(str(path), device="cpu", load_data=False)
+    for name, value in (tensors or {}).items():
+        target = getattr(model, name, None)
+        if not isinstance(target, type(value)) or target.shape != value.shape:
+            raise ValueError(f"tensor variable {name!r} does not match this model")
+        with torch.no_grad():
+            target.copy_(value)
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -123,6 +123,11 @@ def test_fine_tuning_starts_from_the_saved_networks(tmp_path):
     from stable_baselines3.common.save_util import load_from_zip_file
     a, b = (load_from_zip_file(r / "model.zip", device="cpu")[1]["policy"] for r in (first, run))
     assert all(torch.equal(a[k], b[k]) for k in a)
+    # and its entropy coefficient (a tensor variable, not in the state dicts): restarting it
+    # at 1.0 undid a learned policy
+    ea, eb = (load_from_zip_file(r / "model.zip", device="cpu")[2]["log_ent_coef"]
+              for r in (first, run))
+    assert float(ea) != 0.0 and torch.equal(ea, eb)
     assert json.loads((run / "model.json").read_text())["init_from"] == str(
         first / "model.zip")
     with pytest.raises(ValueError, match="--init-from"):
