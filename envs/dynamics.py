@@ -214,6 +214,7 @@ class RobotBatch:
         self._parked = np.zeros(batch_size, dtype=bool)   # rejected at a kink (_advance)
         self._park_x = np.zeros((batch_size, 2 * N))
         self._park_try = np.zeros((batch_size, 2 * N))
+        self._park_g = np.full((batch_size, 2 * N), np.nan)   # g at the rejected try
         self.twist = np.zeros((batch_size, max(N - 1, 0)))
         self.at_lower = np.zeros((batch_size, N), dtype=bool)
         self.at_upper = np.zeros((batch_size, N), dtype=bool)
@@ -258,6 +259,25 @@ class RobotBatch:
         self.q[torch.as_tensor(idx)] = q[torch.as_tensor(rows)]
         self.K[idx] = self._stiffness_of(eq, rows)
         return ok[rows]
+
+    def compensation(self, direction: np.ndarray) -> np.ndarray:
+        """The elastic load ``(B, 2N)`` [N, N·m] to hold against when commanding motion in
+        ``direction (B, 2N)`` (its signs): ``g(x)``, except for an insertion carriage parked
+        at a kink of ``U*`` (its last step rejected there, see :meth:`_advance`) and commanded
+        the way that step went, which gets the force its rejected step met beyond the kink.
+        At a convex corner of ``U*`` the two one-sided forces differ (1.6 N at the Fig. 3
+        outer tube's straight-to-curved transition); compensating with the near side's
+        leaves every push below the jump parked at the corner, while a large enough step
+        jumps over it (the acceptance compares with the start of the step), so whether a
+        compensated carriage passed depended on its step size."""
+        g = self.g.copy()
+        d_try = self._park_try - self._park_x
+        far = ((self._parked & (self._park_x == self.x).all(-1))[:, None]
+               & (d_try != 0) & (np.sign(direction) == np.sign(d_try))
+               & np.isfinite(self._park_g))
+        far[:, self.N:] = False        # U* has kinks in the insertions only
+        g[far] = self._park_g[far]
+        return g
 
     def _stiffness_of(self, eq, rows) -> np.ndarray:
         K = actuator_stiffness(eq, torch.as_tensor(rows)).numpy()
@@ -433,6 +453,7 @@ class RobotBatch:
         frac = 1.0
         failed = np.zeros(0, dtype=bool)
         first = np.full(self.x.shape, np.nan)
+        first_g = np.full(self.x.shape, np.nan)
         for attempt in range(self.model.max_retries + 1):
             if len(todo) == 0:
                 break
@@ -453,6 +474,8 @@ class RobotBatch:
             eq = self._solve(x, self.q[torch.as_tensor(todo)], todo)
             g, tip, margin, twist, energy, converged = self._unpack(eq)
             ok = converged.copy()
+            if attempt == 0:
+                first_g[todo[converged]] = g[converged]
             if accept is not None and ok.any():
                 ok[ok] = accept(todo[ok], x[ok], energy[ok])
             good = np.flatnonzero(ok)
@@ -476,4 +499,5 @@ class RobotBatch:
             self._parked[rejected] = True
             self._park_x[rejected] = self.x[rejected]
             self._park_try[rejected] = first[rejected]
+            self._park_g[rejected] = first_g[rejected]
         return committed

@@ -86,6 +86,12 @@ class ReachConfig:
             the start of the step (held over it, like a controller sampling at the control
             rate): ``a = 0`` holds the robot still. ``scale`` is the robot's
             ``action_scale``, ``info["tau"]`` the applied total.
+        kink_compensation: with ``compensation``, hold against the far side's force where an
+            insertion carriage is parked at a kink of ``U*`` and the action pushes across it
+            (:meth:`envs.dynamics.RobotBatch.compensation`), so that any push crosses the
+            corner; ``False`` (default, what the shipped agents and the published results
+            used): the near side's ``g(x)``, under which a push smaller than the force jump
+            (1.6 N at the Fig. 3 outer tube's transition, ~93.5 mm) stays parked there.
         error_scale: [m] length of the squashed error entry of the observation (> 0,
             default 10 mm).
         plant_scale, tip_force, tip_noise: how each episode's plant differs from the
@@ -106,6 +112,7 @@ class ReachConfig:
     snap_penalty: float = -60.0
     goal_min_distance: float = 2e-3
     compensation: bool = False
+    kink_compensation: bool = False
     error_scale: float = 0.01
     plant_scale: float = 0.0
     tip_force: float = 0.0
@@ -139,6 +146,12 @@ class ReachConfig:
                              f"snap; > 0 would reward snapping), got {self.snap_penalty!r}")
         if not isinstance(self.compensation, (bool, np.bool_)):
             raise ValueError(f"compensation must be True or False, got {self.compensation!r}")
+        if not isinstance(self.kink_compensation, (bool, np.bool_)):
+            raise ValueError(f"kink_compensation must be True or False, got "
+                             f"{self.kink_compensation!r}")
+        if self.kink_compensation and not self.compensation:
+            raise ValueError("kink_compensation=True needs compensation=True (it changes which "
+                             "elastic load the compensation holds against)")
         if self.compensation and self.control != "force":
             raise ValueError(f"compensation=True needs control='force' (joint control already "
                              f"holds the elastic load), got control={self.control!r}")
@@ -599,7 +612,9 @@ class ReachBatch:
         if self.config.control == "force":
             tau = a * self.robot.action_scale
             if self.config.compensation:
-                tau = tau + self.robots.g      # g at the start of the step, held over it
+                # g at the start of the step, held over it (one-sided at a parked kink)
+                tau = tau + (self.robots.compensation(a) if self.config.kink_compensation
+                             else self.robots.g)
             flags = self.robots.step_force(tau)
         else:
             N = self.N
