@@ -398,6 +398,9 @@ def main(argv: list[str] | None = None) -> int:
                         "torchpvs/CTRReachForce-v0 for the baselines); every policy and "
                         "baseline of the call runs on it when given")
     p.add_argument("--robot", default="fig3_two_tube")
+    p.add_argument("--env-kwargs", nargs="*", metavar="KEY:VALUE",
+                   help="task options merged last into every policy's and baseline's env "
+                        "(e.g. kink_compensation:True), as training.train's --env-kwargs")
     p.add_argument("--episodes", type=int, default=500)
     p.add_argument("--batch", type=int, default=50, help="robots stepped together")
     p.add_argument("--seed", type=int, default=12345)
@@ -417,6 +420,11 @@ def main(argv: list[str] | None = None) -> int:
 
     if args.env is not None and args.env not in envs.ENV_IDS:
         p.error(f"--env must be one of {sorted(envs.ENV_IDS)}, got {args.env!r}")
+    from .train import parse_pairs
+    try:
+        extra = parse_pairs(args.env_kwargs, "--env-kwargs")
+    except ValueError as e:
+        p.error(str(e))
     out = Path(args.out)
     out.mkdir(parents=True, exist_ok=True)
     results, summary = {}, {}
@@ -441,7 +449,7 @@ def main(argv: list[str] | None = None) -> int:
                 p.error(f"{path} was trained on robot {robot!r}; evaluate it with --robot "
                         f"{robot} (got --robot {args.robot})")
         venv = envs.CTRReachVecEnv(args.batch, robot=args.robot,
-                                   **{**envs.env_kwargs(env_id), **kwargs})
+                                   **{**envs.env_kwargs(env_id), **kwargs, **extra})
         policy = load_policy(path, venv) if path is not None else CONTROLLERS[name](venv)
         t0 = time.perf_counter()
         res = rollout(policy, venv, args.episodes, seed=args.seed)
