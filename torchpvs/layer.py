@@ -7,34 +7,19 @@ gradients flow through the implicit-function backward (``torchpvs/implicit.py``)
 
 from __future__ import annotations
 
-import math
-
 import torch
 from torch import nn
 
 from .equilibrium import Equilibrium
 from .plan import Plan
 from .scene import Scene, load_scene
-from .sections import TubeTensors
+from .sections import TubeTensors, precurvature_coefficients
 from .solver import SolverOptions, as_batch, check_actuation, solve_tensors
 
 __all__ = ["CTR"]
 
 _PROPS = ("E", "G", "inner_diameter", "outer_diameter", "straight_length", "curved_length",
           "precurvature")
-
-
-def _tube_tensors(E, G, inner_diameter, outer_diameter, straight_length, curved_length,
-                  precurvature) -> TubeTensors:
-    """``TubeTensors`` (``(1, N)``, ``coef (1, N, 3, P)``) from the ``CTR`` properties."""
-    second_moment = math.pi * (outer_diameter**4 - inner_diameter**4) / 64.0
-    return TubeTensors(
-        EI=(E * second_moment)[None],
-        GJ=(G * 2.0 * second_moment)[None],
-        length=(straight_length + curved_length)[None],
-        straight=straight_length[None],
-        coef=precurvature[None],
-    )
 
 
 class CTR(nn.Module):
@@ -58,12 +43,7 @@ class CTR(nn.Module):
         self.scene = scene if isinstance(scene, Scene) else load_scene(scene)
         self.options = options or SolverOptions()
         tubes = self.scene.tubes
-        P = max(1, max(len(ax) for t in tubes for ax in t.precurvature))
-        coef = torch.zeros(len(tubes), 3, P, dtype=dtype)
-        for j, t in enumerate(tubes):
-            for d, ax in enumerate(t.precurvature):
-                if ax:
-                    coef[j, d, :len(ax)] = torch.tensor(ax, dtype=dtype)
+        coef = precurvature_coefficients(tubes, dtype)
         for name in _PROPS[:-1]:
             self.register_buffer(name, torch.tensor([getattr(t, name) for t in tubes],
                                                     dtype=dtype))
@@ -87,7 +67,7 @@ class CTR(nn.Module):
 
     def tube_tensors(self) -> TubeTensors:
         """Derived stiffnesses and lengths as ``(1, N)`` tensors (differentiable)."""
-        return _tube_tensors(*(getattr(self, name) for name in _PROPS))
+        return TubeTensors.from_properties(**{name: getattr(self, name) for name in _PROPS})
 
     def _check_properties(self) -> None:
         """The scene rules (torchpvs.scene) on the current buffers/parameters, in tensor form:
@@ -145,7 +125,8 @@ class CTR(nn.Module):
             # with autograd: no inference tensors (as torchpvs.plan.plan_for).
             with torch.no_grad(), torch.inference_mode(False):
                 values = tuple(t.detach().clone() for t in props)
-                self._plan = Plan(_tube_tensors(*values))
+                named = dict(zip(_PROPS, values, strict=True))
+                self._plan = Plan(TubeTensors.from_properties(**named))
             self._plan_values = values
         return self._plan.tubes, self._plan
 

@@ -22,7 +22,7 @@ import torch
 
 from .mechanics import build_maps
 from .scene import Scene
-from .sections import Discretization, TubeTensors, build_layout
+from .sections import Discretization, TubeTensors, build_layout, precurvature_coefficients
 
 __all__ = ["Plan", "plan_for", "tube_tensors"]
 
@@ -30,13 +30,13 @@ ORDER_START, MAGNUS_START = 2, 8
 
 
 def tube_tensors(scene: Scene, dtype: torch.dtype, device: torch.device) -> TubeTensors:
-    """The scene's tube properties as ``(1, N)`` tensors (``coef``: ``(1, N, 3, P)``)."""
-    P = max(1, max(len(ax) for t in scene.tubes for ax in t.precurvature))
-    coef = torch.zeros(1, scene.n_tubes, 3, P, dtype=dtype, device=device)
-    for j, t in enumerate(scene.tubes):
-        for d, ax in enumerate(t.precurvature):
-            if ax:
-                coef[0, j, d, :len(ax)] = torch.tensor(ax, dtype=dtype, device=device)
+    """The scene's tube properties as ``(1, N)`` tensors (``coef``: ``(1, N, 3, P)``).
+
+    The stiffnesses are the tubes' own (:attr:`torchpvs.scene.Tube.bending_stiffness`, in
+    double precision, then rounded to ``dtype``); :meth:`TubeTensors.from_properties` is the
+    same formula on tensors, for :class:`torchpvs.CTR`'s differentiable properties (in their
+    dtype, so in float32 the two may differ in the last bit)."""
+    coef = precurvature_coefficients(scene.tubes, dtype, device)[None]
 
     def row(values):
         return torch.tensor([values], dtype=dtype, device=device)
@@ -79,7 +79,7 @@ class Plan:
         """``(lay, maps)`` for a batch; reused from the last call with the same insertions,
         loaded mask, discretization and tube tensors (only angles and loads are replaced)."""
         grad = torch.is_grad_enabled() and any(
-            t.requires_grad for t in (D, A, F, M, *tubes.__dict__.values()))
+            t.requires_grad for t in (D, A, F, M, *tubes.tensors()))
         key = (disc, D.shape)
         memo = self._memo.get(key)
         if (not grad and memo is not None and memo.tubes is tubes

@@ -23,6 +23,7 @@ precurvature exactly (the paper's ``p_2 = 1``), so they carry no coordinates.
 from __future__ import annotations
 
 import functools
+import math
 from dataclasses import dataclass, fields
 from typing import NamedTuple
 
@@ -47,13 +48,51 @@ class TubeTensors:
     straight: torch.Tensor
     coef: torch.Tensor
 
+    def tensors(self) -> tuple[torch.Tensor, ...]:
+        """The properties as a flat tuple, in field order (for an ``autograd.Function``, which
+        takes its differentiable inputs one by one; :meth:`from_tensors` is the inverse)."""
+        return tuple(getattr(self, f.name) for f in fields(self))
+
+    @classmethod
+    def from_tensors(cls, tensors) -> TubeTensors:
+        """The inverse of :meth:`tensors`: properties matched to the fields by name order."""
+        return cls(**dict(zip((f.name for f in fields(cls)), tensors, strict=True)))
+
+    def map(self, fn) -> TubeTensors:
+        """``fn`` applied to every property (e.g. ``detach``)."""
+        return TubeTensors(**{f.name: fn(getattr(self, f.name)) for f in fields(self)})
+
+    @classmethod
+    def from_properties(cls, E, G, inner_diameter, outer_diameter, straight_length,
+                        curved_length, precurvature) -> TubeTensors:
+        """From the per-tube material and geometry tensors of :class:`torchpvs.CTR` (``(N,)``
+        each, ``precurvature (N, 3, P)``), differentiably: ``EI = E I``, ``GJ = 2 G I`` with
+        ``I = pi (OD^4 - ID^4) / 64`` (the formulas of :class:`torchpvs.scene.Tube`), as
+        ``(1, N)`` tensors."""
+        second_moment = math.pi * (outer_diameter**4 - inner_diameter**4) / 64.0
+        return cls(EI=(E * second_moment)[None], GJ=(G * 2.0 * second_moment)[None],
+                   length=(straight_length + curved_length)[None],
+                   straight=straight_length[None], coef=precurvature[None])
+
+
+def precurvature_coefficients(tubes, dtype: torch.dtype,
+                              device: torch.device | str | None = None) -> torch.Tensor:
+    """The precurvature polynomials of ``tubes`` (:class:`torchpvs.scene.Tube` s) as one
+    ``(N, 3, P)`` tensor, ``P`` the longest polynomial (at least 1), zero-padded."""
+    P = max(1, max(len(ax) for t in tubes for ax in t.precurvature))
+    coef = torch.zeros(len(tubes), 3, P, dtype=dtype, device=device)
+    for j, t in enumerate(tubes):
+        for d, ax in enumerate(t.precurvature):
+            if ax:
+                coef[j, d, :len(ax)] = torch.tensor(ax, dtype=dtype, device=device)
+    return coef
+
 
 def tube_rows(tubes: TubeTensors, rows) -> TubeTensors:
     """The tube tensors of batch ``rows`` (an index tensor): shared ``(1, N)`` properties as
     they are, per-element ones (a batch of different robots, ``(B, N)``) indexed, so that a
     subset of a batch keeps its own robots."""
-    return TubeTensors(**{f.name: (t if t.shape[0] == 1 else t[rows])
-                          for f in fields(tubes) for t in (getattr(tubes, f.name),)})
+    return tubes.map(lambda t: t if t.shape[0] == 1 else t[rows])
 
 
 @dataclass(frozen=True)
