@@ -306,7 +306,7 @@ def selection_table(cfgs, keep, quick: bool) -> None:
             if e > MISS:
                 continue
             orders[eq.order] += 1
-            mag[eq._ctx["disc"].n_magnus] += 1
+            mag[eq.context.discretization.n_magnus] += 1
             errs.append(e)
             ests.append(float(eq.error_estimate[0]))
         errs, ests = np.array(errs), np.array(ests)

@@ -22,15 +22,16 @@ from torchpvs.testing import scene_strategy
 
 def _state(eq, q=None) -> dict:
     """The solution dict the force functions read, from a solved Equilibrium."""
-    c = eq._ctx
-    info = c["implicit_info"]
-    return {"q": eq.q if q is None else q, "D": c["D"], "alpha": c["alpha"], "F": c["F"],
-            "M": c["M"], "loaded": info["loaded"], "disc": c["disc"], "tab": c["tab"],
-            "lay": c["lay"], "has_moment": info["has_moment"], "with_load": info["with_load"]}
+    c = eq.context
+    info = c.implicit
+    return {"q": eq.q if q is None else q, "D": c.insertion, "alpha": c.rotation,
+            "F": c.tip_force, "M": c.tip_moment, "loaded": info.loaded,
+            "disc": c.discretization, "tab": c.tables, "lay": c.layout,
+            "has_moment": info.has_moment, "with_load": info.with_load}
 
 
 def _assert_same(eq, q=None):
-    tubes = eq._ctx["tubes"]
+    tubes = eq.context.tubes
     ref = envelope_forces_autograd(tubes, _state(eq, q))
     got = envelope_forces_closed_form(tubes, _state(eq, q))
     for r, g, name in zip(ref, got, ("tau_D [N]", "tau_alpha [N m]"), strict=True):
@@ -50,7 +51,7 @@ def test_closed_form_matches_reverse_pass(d):
     _assert_same(eq)
     g = torch.Generator().manual_seed(0)
     noise = torch.randn(eq.q.shape, generator=g, dtype=eq.q.dtype)
-    _assert_same(eq, eq.q + 0.3 * noise * eq._ctx["lay"].qmask)
+    _assert_same(eq, eq.q + 0.3 * noise * eq.context.layout.qmask)
 
 
 def test_closed_form_matches_on_a_batch_across_the_workspace():
@@ -75,7 +76,7 @@ def test_loaded_solves_keep_the_reverse_pass():
     eq = tp.solve(scene, rotation=torch.tensor([0.0, 1.0], dtype=torch.float64),
                   tip_force=torch.tensor([0.0, 0.3, 0.0], dtype=torch.float64),
                   insertion=torch.tensor([0.05, 0.06], dtype=torch.float64))
-    ref, _ = envelope_forces_autograd(eq._ctx["tubes"], _state(eq))
+    ref, _ = envelope_forces_autograd(eq.context.tubes, _state(eq))
     assert torch.equal(eq.actuation_forces, ref)
 
 
@@ -93,7 +94,7 @@ def test_closed_form_second_derivatives_match_double_backward():
     eq = tp.solve(scene, insertion=D, rotation=A,
                   options=tp.SolverOptions(order=2, n_magnus=8, on_failure="ignore"))
     st = _state(eq)
-    tubes, tab, disc = eq._ctx["tubes"], st["tab"], st["disc"]
+    tubes, tab, disc = eq.context.tubes, st["tab"], st["disc"]
     out = []
     for way in ("closed form", "double backward"):
         q, Dg, Ag = (t.detach().clone().requires_grad_(True) for t in (eq.q, st["D"], st["alpha"]))

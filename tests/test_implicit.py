@@ -91,7 +91,7 @@ def test_non_finite_stiffness_warns_instead_of_raising():
     the other elements' gradients equal a solve without it (reference: that solve)."""
     rot = ROT.clone().requires_grad_(True)
     eq = tp.solve(SCENE, insertion=INS, rotation=rot, options=OPTS)
-    eq._ctx["implicit_info"]["Hc"][0] = float("nan")    # element 0: no usable stiffness
+    eq.context.implicit.Hc[0] = float("nan")    # element 0: no usable stiffness
     with pytest.warns(tp.NearSingularStiffnessWarning, match=r"not finite at 1 element\(s\) \[0\]"):
         (g,) = torch.autograd.grad(eq.tip_position[:, 0].sum(), rot)
     assert bool(torch.isnan(g[0]).all())

@@ -199,7 +199,7 @@ def test_magnus_step_count_check_bounds_the_pose_error():
             order=3, n_magnus=128, tol=1e-12, compute_forces=False))
         err = (fixed.tip_position - fine.tip_position).norm(dim=-1)
         assert bool((err <= acc / 2).all()), (acc, err)
-        counts.append(fixed._ctx["disc"].n_magnus)
+        counts.append(fixed.context.discretization.n_magnus)
         auto = tp.solve(sc, rotation=rot, options=tp.SolverOptions(accuracy=acc,
                                                                    compute_forces=False))
         ref = tp.solve(sc, rotation=rot, options=tp.SolverOptions(
@@ -269,7 +269,7 @@ def test_no_grad_solve_returns_ordinary_tensors_and_leaves_caches_usable():
     eq = tp.solve(scene, tip_force=force)
     for name in ("q", "tip_position", "actuation_forces", "actuation_torques", "stable"):
         assert not getattr(eq, name).is_inference(), name
-    assert not any(t.is_inference() for t in eq._ctx["lay"])
+    assert not any(t.is_inference() for t in eq.context.layout)
     w = torch.ones(3, dtype=torch.float64, requires_grad=True)
     (eq.tip_position[0] * w).sum().backward()            # saves tip_position for backward
     assert torch.equal(w.grad, eq.tip_position[0])
@@ -300,11 +300,11 @@ def test_kernel_returns_the_residual_and_hessian_at_its_solution():
     eq0 = tp.solve(scene, rotation=rot, options=opts)
     eq = tp.solve(scene, rotation=rot + torch.tensor([0.0, 0.02], dtype=torch.float64),
                   options=opts, initial=eq0)
-    info = eq._ctx["implicit_info"]
+    info = eq.context.implicit
     plan = plan_for(scene, torch.float64, torch.device("cpu"))
-    ctx = eq._ctx
-    lay, maps = plan.layout(plan.tubes, ctx["D"], ctx["alpha"], ctx["F"], ctx["M"],
-                            info["loaded"], ctx["disc"], eq.q.shape[-1])
+    ctx = eq.context
+    lay, maps = plan.layout(plan.tubes, ctx.insertion, ctx.rotation, ctx.tip_force,
+                            ctx.tip_moment, info.loaded, ctx.discretization, eq.q.shape[-1])
     qc = compact_q(eq.q, maps["cidx"])
     assert torch.equal(expand_q(qc, maps["cidx"], eq.q.shape[-1]), eq.q)
     g, H = elastic_grad_hess(qc, maps)

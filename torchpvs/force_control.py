@@ -269,7 +269,7 @@ def solve_force_controlled(
 
     eq, tau = evaluate(x, initial)
     if opts.order is None or opts.n_magnus is None:
-        inner = replace(inner, order=eq.order, n_magnus=eq._ctx["disc"].n_magnus)
+        inner = replace(inner, order=eq.order, n_magnus=eq.context.discretization.n_magnus)
     failed = ~eq.converged.clone()
     reason: list[str] = [("" if bool(eq.converged[b]) else
                           f"the equilibrium solve at the initial actuation failed: {eq.reason[b]}")
@@ -481,7 +481,7 @@ def commanded_force_jacobian(result: ForceControlled) -> torch.Tensor:
     f = result.commanded
     K = result.actuator_stiffness
     N = K.shape[-1] // 2
-    ell = float(result.equilibrium._ctx["tubes"].length.max())
+    ell = float(result.equilibrium.context.tubes.length.max())
     S = torch.tensor([ell] * N + [1.0] * N, dtype=K.dtype, device=K.device)
     Kff = S[:, None] * K * S[None, :] * (f[:, :, None] & f[:, None, :])
     Kp = S[:, None] * torch.linalg.pinv(Kff, rtol=1e-9) * S[None, :]

@@ -18,32 +18,97 @@ from ``q*`` and ``theta`` with ordinary autograd, so every ``Equilibrium`` field
 from __future__ import annotations
 
 import warnings
+from dataclasses import dataclass, fields, replace
 
 import torch
 
 from .mechanics import expand_hessian, potential, tip_pose
 from .newton import active_index, compact
-from .sections import TubeTensors, build_layout
+from .sections import Discretization, TubeTensors, build_layout
 
-__all__ = ["ImplicitEquilibrium", "NearSingularStiffnessWarning", "full_hessian"]
+__all__ = ["ImplicitContext", "ImplicitEquilibrium", "NearSingularStiffnessWarning",
+           "full_hessian"]
 
 
 class NearSingularStiffnessWarning(RuntimeWarning):
     """The stiffness at an equilibrium is (nearly) singular: gradients there are unreliable."""
 
 
-class ImplicitEquilibrium(torch.autograd.Function):
-    """``q* = ImplicitEquilibrium.apply(q_star, ctx_dict, D, alpha, F, M, EI, GJ, L, Ls, coef)``.
+@dataclass(eq=False)
+class ImplicitContext:
+    """What the implicit backward needs of one solve besides the differentiable inputs
+    (``B`` elements, ``nq`` padded coordinates, ``nc`` the kernel's compact ones).
 
-    ``q_star`` is the converged solution (detached), ``ctx_dict`` carries the layout choices,
-    quadrature tables and the stiffness ``H`` at the solution. The differentiable inputs are
-    passed one by one (never inside a container), as autograd requires.
+    Attributes:
+        qmask: ``(B, nq)`` float 0/1, the active coordinates.
+        loaded: ``(B,)`` bool, elements with a tip load (they have coordinates on the distal
+            single-tube sections).
+        disc: the discretization of the solution; ``tab``: its quadrature and basis tables
+            (:meth:`torchpvs.sections.Discretization.tables`).
+        with_load: any element loaded (the potential includes the load's work).
+        has_moment: a tip moment is modelled (its reference rotation enters the potential).
+        ridge, singular_tol: ``SolverOptions.backward_ridge`` and ``singular_tol``.
+        Hc: ``(B, nc, nc)`` the kernel's Hessian at the solution on its compact coordinates
+            ``cidx (B, nc)`` (index into ``q``), with their mask ``qmask_c (B, nc)``; ``None``
+            on a replicated context that carries ``H`` or the adjoint factors instead.
+        H: cache, ``(B, nq, nq)`` the Hessian on the padded coordinates (identity on the
+            inactive ones), from ``Hc`` on first use (:meth:`hessian`).
+        adjoint: cache, the adjoint factorization ``(lu, pivots, scale)`` of the tangent
+            (:func:`adjoint_factor`), computed by the first backward and reused by every
+            later one through the same solve.
+    """
+
+    qmask: torch.Tensor
+    loaded: torch.Tensor
+    disc: Discretization
+    tab: dict
+    with_load: bool
+    has_moment: bool
+    ridge: float
+    singular_tol: float
+    Hc: torch.Tensor | None = None
+    cidx: torch.Tensor | None = None
+    qmask_c: torch.Tensor | None = None
+    H: torch.Tensor | None = None
+    adjoint: tuple[torch.Tensor, torch.Tensor, torch.Tensor] | None = None
+
+    def hessian(self) -> torch.Tensor:
+        """``H`` ``(B, nq, nq)``, expanded from ``Hc`` on first use and cached."""
+        if self.H is None:
+            self.H = expand_hessian(self.Hc, self.cidx, self.qmask.shape[-1])
+        return self.H
+
+    def rows(self, idx: torch.Tensor, **changes) -> ImplicitContext:
+        """The context of batch rows ``idx`` (``qmask``, ``loaded`` indexed) without the
+        whole-batch stiffness and caches (``Hc``, ``cidx``, ``qmask_c``, ``H``, ``adjoint``),
+        which ``changes`` may set for the rows."""
+        base = {"Hc": None, "cidx": None, "qmask_c": None, "H": None, "adjoint": None}
+        return replace(self, qmask=self.qmask[idx], loaded=self.loaded[idx],
+                       **{**base, **changes})
+
+    def map_tensors(self, fn) -> ImplicitContext:
+        """A copy with ``fn`` applied to every tensor field (``tab`` and the caches' tuples
+        as they are)."""
+        return replace(self, **{f.name: fn(v) for f in fields(self)
+                                for v in (getattr(self, f.name),)
+                                if isinstance(v, torch.Tensor)})
+
+
+class ImplicitEquilibrium(torch.autograd.Function):
+    """``q* = ImplicitEquilibrium.apply(q_star, info, D, alpha, F, M, *tubes.tensors())``.
+
+    ``q_star`` is the converged solution (detached), ``info`` the :class:`ImplicitContext`
+    (layout choices, quadrature tables and the stiffness ``H`` at the solution). The
+    differentiable inputs are passed one by one (never inside a container), as autograd
+    requires: the tube properties as ``TubeTensors.tensors()`` (field order), turned back into
+    a :class:`~torchpvs.sections.TubeTensors` by name inside (the way torchdiffeq's adjoint
+    takes ``adjoint_params``). Use :func:`differentiable_outputs`, which does both.
     """
 
     @staticmethod
-    def forward(ctx, q_star, info, D, alpha, F, M, EI, GJ, L, Ls, coef):  # noqa: N805
+    def forward(ctx, q_star, info, D, alpha, F, M, *tube_params):  # noqa: N805
         ctx.info = info
-        ctx.save_for_backward(q_star, D, alpha, F, M, EI, GJ, L, Ls, coef)
+        ctx.save_for_backward(q_star, D, alpha, F, M, *tube_params)
         return q_star.clone()
 
     @staticmethod
@@ -62,29 +127,30 @@ def _backward(ctx, grad_q):
     """The adjoint solve and the reverse pass through ``g`` (see the module docstring)."""
     # Adjoint: H lambda = grad_q on the active coordinates (H is symmetric: the tangent
     # of a potential; the tip-moment load stiffness is symmetrized as in the solve).
-    q_star, D, alpha, F, M, EI, GJ, L, Ls, coef = ctx.saved_tensors
-    info = ctx.info
-    qmask = info["qmask"]
+    q_star, D, alpha, F, M, *tube_params = ctx.saved_tensors
+    info: ImplicitContext = ctx.info
+    qmask = info.qmask
     # One factorization per equilibrium: every reverse pass through the same solve (e.g. the
     # 2N rows of the actuator stiffness) reuses it, and the singularity check runs once.
     # (info belongs to one solve: its H, q*, actuation and load never change.)
-    cached = info.get("_adjoint")
+    cached = info.adjoint
     if cached is None:
-        cached = adjoint_factor(q_star, info, D, alpha, F, M, EI, GJ, L, Ls, coef)
-        info["_adjoint"] = cached
+        cached = adjoint_factor(q_star, info, D, alpha, F, M,
+                                TubeTensors.from_tensors(tube_params))
+        info.adjoint = cached
     lu, pivots, scale = cached
     lam = torch.linalg.lu_solve(lu, pivots, (grad_q * qmask / scale.sqrt())[..., None])[..., 0]
     lam = lam / scale.sqrt() * qmask
     needs = ctx.needs_input_grad[2:]
     inputs = [t.detach().requires_grad_(bool(nd)) for t, nd in
-              zip((D, alpha, F, M, EI, GJ, L, Ls, coef), needs, strict=True)]
+              zip((D, alpha, F, M, *tube_params), needs, strict=True)]
     with torch.enable_grad():
         q = q_star.detach().requires_grad_(True)
-        lay = build_layout(TubeTensors(*inputs[4:]), inputs[0], inputs[1], inputs[2],
-                           inputs[3], info["loaded"], info["disc"])
+        lay = build_layout(TubeTensors.from_tensors(inputs[4:]), inputs[0], inputs[1],
+                           inputs[2], inputs[3], info.loaded, info.disc)
         # Second slot: the moment's reference rotation stays attached to theta (not to q).
-        R0 = tip_pose(q.detach(), lay, info["tab"])[1] if info["has_moment"] else None
-        P = potential(q, lay, info["tab"], R0, info["with_load"])
+        R0 = tip_pose(q.detach(), lay, info.tab)[1] if info.has_moment else None
+        P = potential(q, lay, info.tab, R0, info.with_load)
         (g,) = torch.autograd.grad(P.sum(), q, create_graph=True)
         wanted = [t for t in inputs if t.requires_grad]
         grads = torch.autograd.grad((g * lam).sum(), wanted, allow_unused=True) \
@@ -100,28 +166,25 @@ def _backward(ctx, grad_q):
     return (None, None, *out)
 
 
-def full_hessian(info: dict) -> torch.Tensor:
+def full_hessian(info: ImplicitContext) -> torch.Tensor:
     """The equilibrium's Hessian ``(B, nq, nq)`` on the padded coordinates (identity on the
-    inactive ones), expanded from the kernel's compact one (``info["Hc"]`` on the coordinates
-    ``info["cidx"]``) on first use and kept in ``info["H"]``."""
-    H = info.get("H")
-    if H is None:
-        H = info["H"] = expand_hessian(info["Hc"], info["cidx"], info["qmask"].shape[-1])
-    return H
+    inactive ones), expanded from the kernel's compact one (``info.Hc`` on the coordinates
+    ``info.cidx``) on first use and kept in ``info.H`` (:meth:`ImplicitContext.hessian`)."""
+    return info.hessian()
 
 
-def adjoint_factor(q_star, info, D, alpha, F, M, EI, GJ, L, Ls, coef):
+def adjoint_factor(q_star, info: ImplicitContext, D, alpha, F, M, tubes: TubeTensors):
     """LU factors of the transposed, Jacobi-scaled tangent ``K^T`` of the adjoint system and the
     scale; warns once if the stiffness is nearly singular."""
-    H = full_hessian(info)
-    qmask = info["qmask"]
+    H = info.hessian()
+    qmask = info.qmask
     scale = H.diagonal(dim1=-2, dim2=-1).abs().clamp(min=torch.finfo(H.dtype).tiny)
     Hs = H / torch.sqrt(scale[:, :, None] * scale[:, None, :])
     # The spectrum on the active coordinates (inactive rows are identity rows, eigenvalue 1):
     # a Cholesky of Hs - tol I proves every eigenvalue above tol (the stable case); eigvalsh
     # only for the elements where it fails.
     Hc = compact(Hs, active_index(qmask))
-    tol = info["singular_tol"]
+    tol = info.singular_tol
     eye_c = torch.eye(Hc.shape[-1], dtype=H.dtype, device=H.device)
     # A non-finite stiffness (an element whose solve overflowed: not converged) has no
     # spectrum; LAPACK's eigh raises on it, so it is reported on its own.
@@ -143,11 +206,11 @@ def adjoint_factor(q_star, info, D, alpha, F, M, EI, GJ, L, Ls, coef):
             "there are unreliable; SolverOptions(backward_ridge=...) regularizes them.",
             NearSingularStiffnessWarning, stacklevel=4)
     eye = torch.eye(H.shape[-1], dtype=H.dtype, device=H.device)
-    A = Hs + info["ridge"] * eye
-    if info["has_moment"] and bool((M != 0).any()):
+    A = Hs + info.ridge * eye
+    if info.has_moment and bool((M != 0).any()):
         # A dead tip moment is not conservative: the exact tangent adds the antisymmetric
         # K_ab = 1/2 M . (theta_a x theta_b) = -1/2 J_theta^T [M]x J_theta (see mechanics).
-        Jt = _rotation_jacobian(q_star, info, D, alpha, F, M, EI, GJ, L, Ls, coef)
+        Jt = _rotation_jacobian(q_star, info, D, alpha, F, M, tubes)
         from .lie import hat
         K = -0.5 * Jt.transpose(1, 2) @ hat(M) @ Jt
         K = K * qmask[:, :, None] * qmask[:, None, :]
@@ -157,13 +220,13 @@ def adjoint_factor(q_star, info, D, alpha, F, M, EI, GJ, L, Ls, coef):
     return lu, pivots, scale
 
 
-def _rotation_jacobian(q_star, info, D, alpha, F, M, EI, GJ, L, Ls, coef) -> torch.Tensor:
+def _rotation_jacobian(q_star, info: ImplicitContext, D, alpha, F, M,
+                       tubes: TubeTensors) -> torch.Tensor:
     """``J_theta (B, 3, nq)``: spatial angular velocity of the tip frame per coordinate."""
     from .mechanics import skew_vee
 
-    lay = build_layout(TubeTensors(EI, GJ, L, Ls, coef), D, alpha, F, M, info["loaded"],
-                       info["disc"])
-    tab = info["tab"]
+    lay = build_layout(tubes, D, alpha, F, M, info.loaded, info.disc)
+    tab = info.tab
 
     def rotvec(q, lay_b, q0):
         _, R, _ = tip_pose(q, lay_b, tab)
@@ -176,25 +239,24 @@ def _rotation_jacobian(q_star, info, D, alpha, F, M, EI, GJ, L, Ls, coef) -> tor
     return torch.func.vmap(torch.func.jacrev(rotvec))(q, lay, q)
 
 
-def differentiable_outputs(q_star: torch.Tensor, info: dict, D, alpha, F, M,
+def differentiable_outputs(q_star: torch.Tensor, info: ImplicitContext, D, alpha, F, M,
                            tubes: TubeTensors) -> dict[str, torch.Tensor]:
     """Every output as a differentiable function of the inputs, through the implicit ``q*``."""
     from .mechanics import node_fields
 
-    q = ImplicitEquilibrium.apply(q_star.detach(), info, D, alpha, F, M, tubes.EI, tubes.GJ,
-                                  tubes.length, tubes.straight, tubes.coef)
+    q = ImplicitEquilibrium.apply(q_star.detach(), info, D, alpha, F, M, *tubes.tensors())
     dD = torch.zeros_like(D, requires_grad=True)
     dA = torch.zeros_like(alpha, requires_grad=True)
-    lay = build_layout(tubes, D + dD, alpha + dA, F, M, info["loaded"], info["disc"])
-    tab = info["tab"]
+    lay = build_layout(tubes, D + dD, alpha + dA, F, M, info.loaded, info.disc)
+    tab = info.tab
     p, R, _ = tip_pose(q, lay, tab)
     R0 = None
-    if info["has_moment"]:
+    if info.has_moment:
         # Reference slot: same state, but not differentiated by the forces' d/d(dD, dA).
-        lay0 = build_layout(tubes, D, alpha, F, M, info["loaded"], info["disc"])
+        lay0 = build_layout(tubes, D, alpha, F, M, info.loaded, info.disc)
         R0 = tip_pose(q, lay0, tab)[1]
-    U = potential(q, lay, tab, R0, info["with_load"])
-    energy = potential(q, lay, tab, None, info["with_load"])
+    U = potential(q, lay, tab, R0, info.with_load)
+    energy = potential(q, lay, tab, None, info.with_load)
     tau_D, tau_A = torch.autograd.grad(U.sum(), (dD, dA), create_graph=True)
     f = node_fields(q, lay, tab["xq"], tab["phi_q"], tab["Q_q"])
     psi_l1 = f["psi0"] + (f["inc"] * lay.before_l1[..., None]).sum(-2)

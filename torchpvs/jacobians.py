@@ -25,12 +25,12 @@ backward of :mod:`torchpvs.implicit` instead.
 
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 
 from .forces import closed_form_partials
-from .implicit import differentiable_outputs, full_hessian
+from .implicit import adjoint_factor, differentiable_outputs
 from .mechanics import potential, skew_vee, tip_pose
 from .sections import TubeTensors, build_layout, tube_rows
 
@@ -55,21 +55,17 @@ def _adjoint_rows(eq, rows: torch.Tensor):
     """The adjoint factorization ``(lu, pivots, scale)`` of batch ``rows`` of the equilibrium:
     indexed from the cached one, or (first use) computed for the whole batch and cached, or for
     a subset of rows only (not cached: the cache is per batch)."""
-    from .implicit import adjoint_factor
-
-    ctx = eq._ctx
-    info = ctx["implicit_info"]
-    tubes: TubeTensors = ctx["tubes"]
+    ctx = eq.context
+    info = ctx.implicit
+    tubes: TubeTensors = ctx.tubes
     q = eq.q.detach()
-    D, A, F, M = (ctx[k].detach() for k in ("D", "alpha", "F", "M"))
-    props = (tubes.EI, tubes.GJ, tubes.length, tubes.straight, tubes.coef)
-    factors = info.get("_adjoint")
+    D, A, F, M = (t.detach() for t in ctx.actuation_and_load)
+    factors = info.adjoint
     if factors is None and len(rows) == q.shape[0]:
-        factors = info["_adjoint"] = adjoint_factor(q, info, D, A, F, M, *props)
+        factors = info.adjoint = adjoint_factor(q, info, D, A, F, M, tubes)
     if factors is None:
-        sub = dict(info, H=full_hessian(info)[rows], qmask=info["qmask"][rows],
-                   loaded=info["loaded"][rows])
-        return adjoint_factor(q[rows], sub, D[rows], A[rows], F[rows], M[rows], *props)
+        sub = info.rows(rows, H=info.hessian()[rows])
+        return adjoint_factor(q[rows], sub, D[rows], A[rows], F[rows], M[rows], tubes)
     return tuple(t[rows] for t in factors)
 
 
@@ -81,13 +77,11 @@ def _replicated(eq, m: int, rows: torch.Tensor):
     output ``i`` (elements are independent), instead of ``m`` reverse passes over the batch. The
     flops are the same; the torch op count (what bounds small and medium batches on a CPU)
     falls ``m``-fold."""
-    ctx = eq._ctx
-    info = ctx["implicit_info"]
+    ctx = eq.context
     idx = rows.repeat_interleave(m)
-    rep = {k: v for k, v in info.items() if k not in ("H", "Hc", "cidx", "qmask_c", "_adjoint")}
-    rep.update(qmask=info["qmask"][idx], loaded=info["loaded"][idx])
-    inputs = tuple(ctx[k].detach()[idx] for k in ("D", "alpha", "F", "M"))
-    return eq.q.detach()[idx], rep, inputs, tube_rows(ctx["tubes"], idx)
+    rep = ctx.implicit.rows(idx)
+    inputs = tuple(t.detach()[idx] for t in ctx.actuation_and_load)
+    return eq.q.detach()[idx], rep, inputs, tube_rows(ctx.tubes, idx)
 
 
 def _rows_of(eq, rows) -> torch.Tensor:
@@ -118,16 +112,16 @@ def _schur(eq, rows: torch.Tensor):
     coordinates). ``Z`` is ``None`` under a tip moment (the stiffness then comes from the
     implicit backward)."""
     q0 = eq.q
-    B, m = len(rows), 2 * eq._ctx["D"].shape[1]
+    B, m = len(rows), 2 * eq.context.insertion.shape[1]
     if B == 0:
         return (torch.zeros(0, m, m, dtype=q0.dtype, device=q0.device),
                 torch.zeros(0, q0.shape[-1], m, dtype=q0.dtype, device=q0.device))
     lu, piv, scale = _adjoint_rows(eq, rows)
-    ctx = eq._ctx
-    qmask = ctx["implicit_info"]["qmask"][rows]                           # (B, nq)
+    ctx = eq.context
+    qmask = ctx.implicit.qmask[rows]                                      # (B, nq)
     N = m // 2
-    D0 = ctx["D"].detach()[rows]
-    if not ctx["implicit_info"]["has_moment"] and bool((qmask[:, :N] > 0).all()) \
+    D0 = ctx.insertion.detach()[rows]
+    if not ctx.implicit.has_moment and bool((qmask[:, :N] > 0).all()) \
             and bool((D0 > 0).all()):
         Uxq, Uxx = _rotation_rows_from_hessian(eq, rows, D0)
     else:
@@ -135,8 +129,8 @@ def _schur(eq, rows: torch.Tensor):
         D.requires_grad_(True)
         A.requires_grad_(True)
         pick = torch.eye(m, dtype=q.dtype, device=q.device).repeat(B, 1)    # (B m, 2N)
-        if info["has_moment"]:
-            info["_adjoint"] = tuple(t.repeat_interleave(m, 0) for t in (lu, piv, scale))
+        if info.has_moment:
+            info.adjoint = tuple(t.repeat_interleave(m, 0) for t in (lu, piv, scale))
             with torch.enable_grad():
                 out = differentiable_outputs(q, info, D, A, F, M, tubes)
                 tau = torch.cat([out["forces"], out["torques"]], -1)
@@ -144,8 +138,8 @@ def _schur(eq, rows: torch.Tensor):
             return torch.cat([KD, KA], -1).reshape(B, m, m), None
         q = q.requires_grad_(True)
         with torch.enable_grad():
-            lay = build_layout(tubes, D, A, F, M, info["loaded"], info["disc"])
-            U = potential(q, lay, info["tab"], None, info["with_load"])
+            lay = build_layout(tubes, D, A, F, M, info.loaded, info.disc)
+            U = potential(q, lay, info.tab, None, info.with_load)
             tau = torch.cat(torch.autograd.grad(U.sum(), (D, A), create_graph=True), -1)
             Uxq, UxD, UxA = torch.autograd.grad((tau * pick).sum(), (q, D, A))
         Uxx = torch.cat([UxD, UxA], -1).reshape(B, m, m)
@@ -172,11 +166,11 @@ def _tip_partials(eq, rows: torch.Tensor):
     q, D, A = (t.requires_grad_(True) for t in (q, D, A))
     pick = torch.eye(6, dtype=q.dtype, device=q.device).repeat(B, 1)        # (B 6, 6)
     with torch.enable_grad():
-        lay = build_layout(tubes, D, A, F, M, info["loaded"], info["disc"])
-        p, R, _ = tip_pose(q, lay, info["tab"])
+        lay = build_layout(tubes, D, A, F, M, info.loaded, info.disc)
+        p, R, _ = tip_pose(q, lay, info.tab)
         tip = torch.cat([p, skew_vee(R @ R.detach().transpose(-1, -2))], -1)
         Pq, PD, PA = torch.autograd.grad((tip * pick).sum(), (q, D, A))
-    qmask = eq._ctx["implicit_info"]["qmask"][rows]
+    qmask = eq.context.implicit.qmask[rows]
     return (Pq.reshape(B, 6, -1) * qmask[:, None],
             torch.cat([PD, PA], -1).reshape(B, 6, -1))
 
@@ -205,7 +199,7 @@ def _control_blocks(eq, rows: torch.Tensor):
     q, info, (D, A, F, M), tubes = _replicated(eq, 6, rows)
     D.requires_grad_(True)
     A.requires_grad_(True)
-    info["_adjoint"] = tuple(t.repeat_interleave(6, 0) for t in (lu, piv, scale))
+    info.adjoint = tuple(t.repeat_interleave(6, 0) for t in (lu, piv, scale))
     pick = torch.eye(6, dtype=q.dtype, device=q.device).repeat(B, 1)
     with torch.enable_grad():
         out = differentiable_outputs(q, info, D, A, F, M, tubes)
@@ -227,17 +221,17 @@ def _rotation_rows_from_hessian(eq, rows, D0):
     pick = torch.eye(N, dtype=q.dtype, device=q.device).repeat(B, 1)        # (B N, N)
     D, A, q = (t.requires_grad_(True) for t in (D, A, q))
     with torch.enable_grad():
-        lay = build_layout(tubes, D, A, F, M, info["loaded"], info["disc"])
-        if info["with_load"]:
-            U = potential(q, lay, info["tab"], None, True)
+        lay = build_layout(tubes, D, A, F, M, info.loaded, info.disc)
+        if info.with_load:
+            U = potential(q, lay, info.tab, None, True)
             tau_D = torch.autograd.grad(U.sum(), D, create_graph=True)[0]
         else:
             # the closed-form dU/dD (forces.closed_form_partials) differentiated once, instead
             # of a double backward through the energy
-            tau_D = closed_form_partials(q, lay, tubes, info["tab"], info["disc"])[0]
+            tau_D = closed_form_partials(q, lay, tubes, info.tab, info.disc)[0]
         UDq, UDD, UDA = torch.autograd.grad((tau_D * pick).sum(), (q, D, A))
-    H = full_hessian(eq._ctx["implicit_info"])[rows]                       # (B, nq, nq)
-    GJ = tube_rows(eq._ctx["tubes"], rows).GJ.detach().expand(B, N)
+    H = eq.context.implicit.hessian()[rows]                                # (B, nq, nq)
+    GJ = tube_rows(eq.context.tubes, rows).GJ.detach().expand(B, N)
     GJD = torch.diag_embed(GJ * D0)                                         # (B, N, N)
     UAq = H[:, :N, :].clone()
     UAq[:, :, :N] -= GJD
@@ -268,12 +262,9 @@ def control_jacobians(eq, *, compliance: bool = True,
     C = None
     if compliance:
         eqc = eq
-        if not eq._ctx["implicit_info"]["with_load"]:
-            from dataclasses import replace
-
-            ctx = eq._ctx
-            opts = replace(ctx["options"], load_coordinates=True, order=eq.order)
-            eqc = ctx["resolve"](opts, eq)
+        if not eq.context.implicit.with_load:
+            opts = replace(eq.context.options, load_coordinates=True, order=eq.order)
+            eqc = eq.solve_again(opts, eq)
         Pq = _tip_partials(eqc, rows)[0]
         C = (Pq @ _tangent_solve(_adjoint_rows(eqc, rows), Pq.transpose(1, 2))).detach()
     sv = torch.linalg.svdvals(K)

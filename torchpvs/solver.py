@@ -9,12 +9,12 @@ from __future__ import annotations
 import math
 import time
 import warnings
-from dataclasses import dataclass, fields, replace
+from dataclasses import dataclass, replace
 
 import torch
 
 from .equilibrium import Equilibrium
-from .implicit import differentiable_outputs
+from .implicit import ImplicitContext, differentiable_outputs
 from .mechanics import (
     compact_hessian,
     compact_q,
@@ -318,8 +318,7 @@ def solve_tensors(scene: Scene, tubes: TubeTensors, D, A, F, M, opts: SolverOpti
     t0 = time.perf_counter()
     plan = plan if plan is not None else Plan(tubes)
     needs_grad = torch.is_grad_enabled() and any(
-        t.requires_grad for t in (D, A, F, M, tubes.EI, tubes.GJ, tubes.length, tubes.straight,
-                                  tubes.coef))
+        t.requires_grad for t in (D, A, F, M, *tubes.tensors()))
     # U*(alpha) is 2 pi-periodic in every base rotation and q holds no absolute angle: solving
     # at alpha - 2 pi k (k constant, no gradient) keeps cos/sin accurate for large angles.
     A = A - (2 * math.pi) * torch.round(A.detach() / (2 * math.pi))
@@ -327,11 +326,10 @@ def solve_tensors(scene: Scene, tubes: TubeTensors, D, A, F, M, opts: SolverOpti
     # Owned copies: the plan keeps layouts that refer to them (a caller may reuse its buffers).
     D, A, F, M = (t.detach().clone() for t in (D, A, F, M))
     if needs_grad:
-        tubes = TubeTensors(*(t.detach() for t in (tubes.EI, tubes.GJ, tubes.length,
-                                                   tubes.straight, tubes.coef)))
+        tubes = tubes.map(torch.Tensor.detach)
     # Without a gradient to carry, the solve runs in inference mode (no autograd bookkeeping:
     # ~20% less time per torch op, which bounds small batches); what it returns is released
-    # to ordinary tensors (_released).
+    # to ordinary tensors (Equilibrium.released).
     with torch.inference_mode(not needs_grad):
         q_init, init_order, init_magnus = _initial_q(initial, B, scene.n_tubes)
         q_init = _rotation_predictor(initial, q_init, scene, tubes, D, A, F, M, opts)
@@ -378,10 +376,11 @@ def solve_tensors(scene: Scene, tubes: TubeTensors, D, A, F, M, opts: SolverOpti
     res["timed_out"] = work.timed_out
     diff = None
     # The Hessian is kept on the kernel's compact coordinates (implicit.full_hessian pads it).
-    info = {"Hc": res["Hc"], "cidx": res["maps"]["cidx"], "qmask_c": res["maps"]["qmask"],
-            "qmask": res["lay"].qmask, "ridge": opts.backward_ridge,
-            "singular_tol": opts.singular_tol, "loaded": res["loaded"], "disc": res["disc"],
-            "tab": res["tab"], "with_load": res["with_load"], "has_moment": res["has_moment"]}
+    info = ImplicitContext(
+        qmask=res["lay"].qmask, loaded=res["loaded"], disc=res["disc"], tab=res["tab"],
+        with_load=res["with_load"], has_moment=res["has_moment"], ridge=opts.backward_ridge,
+        singular_tol=opts.singular_tol, Hc=res["Hc"], cidx=res["maps"]["cidx"],
+        qmask_c=res["maps"]["qmask"])
     res["implicit_info"] = info
     if needs_grad:
         diff = differentiable_outputs(res["q"], info, D_in, A_in, F_in, M_in, tubes_in)
@@ -424,10 +423,10 @@ def solve_tensors(scene: Scene, tubes: TubeTensors, D, A, F, M, opts: SolverOpti
         return solve_tensors(scene, tubes, D, A, F, M, options, initial_, plan)
 
     with torch.inference_mode(not needs_grad):
-        eq = Equilibrium._from_solution(scene, tubes, res, opts, elapsed, diff, plan, resolve,
-                                        resolve_all)
+        eq = Equilibrium.from_solution(scene, tubes, res, opts, elapsed, diff, plan, resolve,
+                                       resolve_all)
     if not needs_grad:
-        eq = _released(eq)
+        eq = eq.released()
     if opts.order is None and opts.on_failure != "ignore":
         short = eq.converged & ~eq.accuracy_met
         if bool(short.any()):
@@ -448,24 +447,6 @@ def solve_tensors(scene: Scene, tubes: TubeTensors, D, A, F, M, opts: SolverOpti
                 raise SolverError(msg)
             warnings.warn(msg, RuntimeWarning, stacklevel=2)
     return eq
-
-
-def _released(eq: Equilibrium) -> Equilibrium:
-    """``eq`` with every inference-mode tensor (its fields and the context its methods use)
-    cloned to an ordinary tensor, so that callers can modify the outputs in place and use them
-    in autograd graphs (inference tensors allow neither outside inference mode). The context's
-    containers are walked by hand: a generic pytree map cost 0.3 ms per call, 5% of a single
-    solve."""
-    def out(x):
-        return x.clone() if isinstance(x, torch.Tensor) and x.is_inference() else x
-
-    changes = {f.name: out(getattr(eq, f.name)) for f in fields(eq) if f.name != "_ctx"}
-    ctx = dict(eq._ctx)
-    ctx["lay"] = type(ctx["lay"])(*map(out, ctx["lay"]))
-    ctx["implicit_info"] = {k: out(v) for k, v in ctx["implicit_info"].items()}
-    for key in ("D", "alpha", "F", "M"):
-        ctx[key] = out(ctx[key])
-    return replace(eq, **changes, _ctx=ctx)
 
 
 def _order_estimate(scene, tubes, D, A, F, M, res, opts: SolverOptions, plan: Plan):
@@ -723,7 +704,8 @@ def _initial_q(initial, B: int, N: int):
         raise ValueError(f"initial has batch size {q.shape[0]}, expected 1 or {B}")
     n_from = (q.shape[-1] - N) // (2 * N * (2 + N))
     order = n_from - 1 if n_coordinates(N, n_from) == q.shape[-1] and n_from >= 1 else None
-    magnus = initial._ctx["disc"].n_magnus if isinstance(initial, Equilibrium) else None
+    magnus = (initial.context.discretization.n_magnus if isinstance(initial, Equilibrium)
+              else None)
     return q.detach().expand(B, -1), order, magnus
 
 
@@ -747,16 +729,18 @@ def _rotation_predictor(initial, q_init, scene, tubes, D, A, F, M, opts):
     start as it is. It changes where Newton starts, not what it converges to."""
     if not isinstance(initial, Equilibrium) or q_init is None:
         return q_init
-    ctx = initial._ctx
-    info = ctx.get("implicit_info", {})
-    Hc = info.get("Hc")
-    B, N = D.shape
-    if (Hc is None or Hc.shape[0] != B or info["with_load"] or opts.load_coordinates
-            or ctx["scene"].tubes != scene.tubes or ctx["D"].shape != D.shape
-            or bool((F != 0).any() | (M != 0).any()) or not torch.equal(ctx["D"], D)):
+    ctx = initial.context
+    if ctx is None:
         return q_init
-    qmask_c, cidx = info["qmask_c"], info["cidx"]
-    dA = A - ctx["alpha"].to(A.dtype)
+    info = ctx.implicit
+    Hc = info.Hc
+    B, N = D.shape
+    if (Hc is None or Hc.shape[0] != B or info.with_load or opts.load_coordinates
+            or ctx.scene.tubes != scene.tubes or ctx.insertion.shape != D.shape
+            or bool((F != 0).any() | (M != 0).any()) or not torch.equal(ctx.insertion, D)):
+        return q_init
+    qmask_c, cidx = info.qmask_c, info.cidx
+    dA = A - ctx.rotation.to(A.dtype)
     dA = dA - (2 * math.pi) * torch.round(dA / (2 * math.pi))
     rhs = torch.zeros_like(qmask_c)
     rhs[:, :N] = tubes.GJ.expand(B, N) * dA

@@ -44,15 +44,15 @@ def stationarity(eq, n_dirs: int = 3, seed: int = 0) -> float:
     central differences (step 1e-3 in scaled units) of the quadrature energy."""
     from torchpvs.implicit import full_hessian
 
-    ctx = eq._ctx
+    ctx = eq.context
     q = eq.q.detach()
-    info = ctx["implicit_info"]
-    H, mask = full_hessian(info), info["qmask"]
-    lay, tab = ctx["lay"], ctx["tab"]
+    info = ctx.implicit
+    H, mask = full_hessian(info), info.qmask
+    lay, tab = ctx.layout, ctx.tables
     if int(mask.sum()) == 0:
         return 0.0
     scale = H.diagonal(dim1=-2, dim2=-1).abs().clamp(min=1e-300) ** -0.5 * mask
-    L = float((lay.ell.amax(-1) + ctx["D"].amax(-1)).clamp(min=1e-6)[0])
+    L = float((lay.ell.amax(-1) + ctx.insertion.amax(-1)).clamp(min=1e-6)[0])
     R0 = eq.tip_rotation.detach()
     gen = torch.Generator().manual_seed(seed)
     worst = 0.0
@@ -62,7 +62,7 @@ def stationarity(eq, n_dirs: int = 3, seed: int = 0) -> float:
         eps = 1e-3
 
         def E(t, v=v):
-            return float(potential(q + t * v, lay, tab, R0, info["with_load"])[0])
+            return float(potential(q + t * v, lay, tab, R0, info.with_load)[0])
         e0, ep, em = E(0.0), E(eps), E(-eps)
         slope, curv = (ep - em) / (2 * eps), (ep - 2 * e0 + em) / eps**2
         noise = 1e3 * torch.finfo(q.dtype).eps * abs(e0) / eps
