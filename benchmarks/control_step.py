@@ -28,30 +28,13 @@ from __future__ import annotations
 import argparse
 import json
 import math
-import time
 import warnings
 
 import torch
+from fast_path import bench_scene, best_time  # a sibling script (run from benchmarks/)
 
 import torchpvs
 from torchpvs.jacobians import actuator_stiffness
-
-
-def _best(fn, repeat: int) -> float:
-    fn()
-    best = math.inf
-    for _ in range(repeat):
-        t = time.perf_counter()
-        fn()
-        best = min(best, time.perf_counter() - t)
-    return best
-
-
-def _scene(name: str):
-    if name == "fig3":
-        return torchpvs.load_scene("renda2021_fig3")
-    from envs.robots import rvim_three_tube
-    return rvim_three_tube().scene
 
 
 def _autograd_rows(scene, rot, initial):
@@ -67,7 +50,7 @@ def _autograd_rows(scene, rot, initial):
 
 
 def bench_robot(name: str, configs: int, repeat: int) -> dict:
-    scene = _scene(name)
+    scene = bench_scene(name)
     step = math.radians(1.0)
     base = torch.tensor(scene.actuation.rotation, dtype=torch.float64)
     rot0 = base.repeat(configs, 1)
@@ -89,7 +72,7 @@ def bench_robot(name: str, configs: int, repeat: int) -> dict:
     }
     out = {"robot": name, "tubes": scene.n_tubes, "configs": configs}
     for label, fn in cases.items():
-        out[label] = 1e3 * _best(fn, repeat) / configs
+        out[label] = 1e3 * best_time(fn, repeat) / configs
     diff, scale = 0.0, 0.0
     for r, e in pairs:
         J = solve(r, e).jacobians(compliance=False).tip_jacobian[:, :3]

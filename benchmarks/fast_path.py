@@ -49,7 +49,8 @@ class _OpCounter(TorchDispatchMode):
         return func(*args, **(kwargs or {}))
 
 
-def _best(fn, repeat: int) -> float:
+def best_time(fn, repeat: int) -> float:
+    """[s] the best of ``repeat`` timed calls of ``fn`` after one untimed warm-up call."""
     fn()
     best = math.inf
     for _ in range(repeat):
@@ -59,7 +60,8 @@ def _best(fn, repeat: int) -> float:
     return best
 
 
-def _scene(name: str):
+def bench_scene(name: str):
+    """The benchmark robots: ``"fig3"`` (the paper's Fig. 3 scene) or the three-tube preset."""
     if name == "fig3":
         return torchpvs.load_scene("renda2021_fig3")
     from envs.robots import rvim_three_tube
@@ -67,7 +69,7 @@ def _scene(name: str):
 
 
 def bench_robot(name: str, configs: int, batches, repeat: int) -> dict:
-    scene = _scene(name)
+    scene = bench_scene(name)
     N = scene.n_tubes
     step = math.radians(1.0)
     base = torch.tensor(scene.actuation.rotation, dtype=torch.float64)
@@ -90,7 +92,7 @@ def bench_robot(name: str, configs: int, batches, repeat: int) -> dict:
         for s, p in zip(scenes1, ref0, strict=True):
             solve_standard(s, initial=p, **kw)
 
-    t_ref = _best(ref_run, repeat) / configs
+    t_ref = best_time(ref_run, repeat) / configs
     out["reference_ms"] = 1e3 * t_ref
 
     opts = {"default": torchpvs.SolverOptions(),
@@ -105,7 +107,7 @@ def bench_robot(name: str, configs: int, batches, repeat: int) -> dict:
             for r, e in zip(rot1, eq0, strict=True):
                 torchpvs.solve(scene, rotation=r[None], initial=e, options=o)
 
-        t1 = _best(single, repeat) / configs
+        t1 = best_time(single, repeat) / configs
         out[f"single_{label}_ms"] = 1e3 * t1
         out[f"single_{label}_ratio"] = t_ref / t1
         for B in batches:
@@ -115,9 +117,9 @@ def bench_robot(name: str, configs: int, batches, repeat: int) -> dict:
                                 initial=torch.cat([e.q for e in eq0]).repeat(reps, 1)[:B]
                                 if len({e.q.shape[-1] for e in eq0}) == 1 else None)
             Bn = R1.shape[0]
-            tw = _best(lambda: torchpvs.solve(scene, rotation=R1, initial=E0, options=o),
+            tw = best_time(lambda: torchpvs.solve(scene, rotation=R1, initial=E0, options=o),
                        repeat) / Bn
-            tc = _best(lambda: torchpvs.solve(scene, rotation=R1, options=o), repeat) / Bn
+            tc = best_time(lambda: torchpvs.solve(scene, rotation=R1, options=o), repeat) / Bn
             out[f"b{B}_warm_{label}_ms"] = 1e3 * tw
             out[f"b{B}_cold_{label}_ms"] = 1e3 * tc
             out[f"b{B}_warm_{label}_ratio"] = t_ref / tw
@@ -144,7 +146,7 @@ def bench_env(t_ref_ms: float, repeat: int, steps: int = 20) -> dict:
         for a in acts:
             env.step(a)
 
-    t = _best(run, repeat) / (steps * 64)
+    t = best_time(run, repeat) / (steps * 64)
     env.close()
     return {"env_steps_per_s": 1.0 / t, "env_over_ref": (1.0 / t) / (1e3 / t_ref_ms)}
 
