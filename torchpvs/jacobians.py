@@ -116,26 +116,20 @@ def _schur(eq, rows: torch.Tensor):
     if B == 0:
         return (torch.zeros(0, m, m, dtype=q0.dtype, device=q0.device),
                 torch.zeros(0, q0.shape[-1], m, dtype=q0.dtype, device=q0.device))
-    lu, piv, scale = _adjoint_rows(eq, rows)
     ctx = eq.context
+    if ctx.implicit.has_moment:
+        return _implicit_rows(eq, rows, stiffness=True, tip=False), None
+    lu, piv, scale = _adjoint_rows(eq, rows)
     qmask = ctx.implicit.qmask[rows]                                      # (B, nq)
     N = m // 2
     D0 = ctx.insertion.detach()[rows]
-    if not ctx.implicit.has_moment and bool((qmask[:, :N] > 0).all()) \
-            and bool((D0 > 0).all()):
+    if bool((qmask[:, :N] > 0).all()) and bool((D0 > 0).all()):
         Uxq, Uxx = _rotation_rows_from_hessian(eq, rows, D0)
     else:
         q, info, (D, A, F, M), tubes = _replicated(eq, m, rows)
         D.requires_grad_(True)
         A.requires_grad_(True)
         pick = torch.eye(m, dtype=q.dtype, device=q.device).repeat(B, 1)    # (B m, 2N)
-        if info.has_moment:
-            info.adjoint = tuple(t.repeat_interleave(m, 0) for t in (lu, piv, scale))
-            with torch.enable_grad():
-                out = differentiable_outputs(q, info, D, A, F, M, tubes)
-                tau = torch.cat([out["forces"], out["torques"]], -1)
-                KD, KA = torch.autograd.grad((tau * pick).sum(), (D, A))
-            return torch.cat([KD, KA], -1).reshape(B, m, m), None
         q = q.requires_grad_(True)
         with torch.enable_grad():
             lay = build_layout(tubes, D, A, F, M, info.loaded, info.disc)
@@ -191,22 +185,34 @@ def tip_jacobian(eq, rows=None) -> torch.Tensor:
 def _control_blocks(eq, rows: torch.Tensor):
     """``(K (B, 2N, 2N), J_x (B, 6, 2N))`` of batch ``rows``."""
     K, Z = _schur(eq, rows)
-    if Z is not None:
-        Pq, Px = _tip_partials(eq, rows)
-        return K, Px - Pq @ Z
-    B = len(rows)
+    if Z is None:   # a tip moment: through the implicit backward
+        return K, _implicit_rows(eq, rows, stiffness=False, tip=True)
+    Pq, Px = _tip_partials(eq, rows)
+    return K, Px - Pq @ Z
+
+
+def _implicit_rows(eq, rows: torch.Tensor, *, stiffness: bool, tip: bool) -> torch.Tensor:
+    """Rows ``d(outputs)/dx`` ``(B, m, 2N)`` through the implicit backward (the path for a dead
+    tip moment, whose tangent is not a Hessian): outputs the actuation forces and torques
+    (``stiffness``, 2N rows) then the tip twist (``tip``, 6 rows), in one reverse pass over the
+    batch repeated once per row (:func:`_replicated`)."""
+    B, n = len(rows), 2 * eq.context.insertion.shape[1]
+    m = n * stiffness + 6 * tip
     lu, piv, scale = _adjoint_rows(eq, rows)
-    q, info, (D, A, F, M), tubes = _replicated(eq, 6, rows)
+    q, info, (D, A, F, M), tubes = _replicated(eq, m, rows)
     D.requires_grad_(True)
     A.requires_grad_(True)
-    info.adjoint = tuple(t.repeat_interleave(6, 0) for t in (lu, piv, scale))
-    pick = torch.eye(6, dtype=q.dtype, device=q.device).repeat(B, 1)
+    info.adjoint = tuple(t.repeat_interleave(m, 0) for t in (lu, piv, scale))
+    pick = torch.eye(m, dtype=q.dtype, device=q.device).repeat(B, 1)        # (B m, m)
     with torch.enable_grad():
         out = differentiable_outputs(q, info, D, A, F, M, tubes)
-        R0 = out["R"].detach()
-        tip = torch.cat([out["tip"], skew_vee(out["R"] @ R0.transpose(-1, -2))], -1)
-        JD, JA = torch.autograd.grad((tip * pick).sum(), (D, A))
-    return K, torch.cat([JD, JA], -1).reshape(B, 6, -1)
+        parts = [torch.cat([out["forces"], out["torques"]], -1)] if stiffness else []
+        if tip:
+            R0 = out["R"].detach()
+            parts.append(torch.cat([out["tip"], skew_vee(out["R"] @ R0.transpose(-1, -2))],
+                                   -1))
+        GD, GA = torch.autograd.grad((torch.cat(parts, -1) * pick).sum(), (D, A))
+    return torch.cat([GD, GA], -1).reshape(B, m, n)
 
 
 def _rotation_rows_from_hessian(eq, rows, D0):
