@@ -405,6 +405,11 @@ class PlanThenServoController:
         self._start[idx] = x0
         self._s[idx] = 0.0 if self.path_speed is not None else 1.0
 
+    @property
+    def reference(self) -> np.ndarray:
+        """``(B, 2N)`` the actuation each robot is servoing to: its plan ``target``."""
+        return self.target
+
     # -- acting -------------------------------------------------------------------------------
     def replan(self, st) -> None:
         """Plan the robots whose goal in ``st`` (an :class:`envs.task.RobotState`) changed since
@@ -480,6 +485,12 @@ class PlanThenServoFeedbackController(PlanThenServoController):
         self.g_set = np.zeros((B, 2 * N))
         self.z = np.zeros((B, 2 * N))
         self.updates = np.zeros(B, dtype=int)
+
+    @property
+    def reference(self) -> np.ndarray:
+        """``(B, 2N)`` the setpoint ``s`` each robot is servoing to: the plan as corrected by
+        the outer loop so far."""
+        return self.setpoint
 
     def plan(self, idx, st) -> None:
         super().plan(idx, st)

@@ -6,9 +6,10 @@ command (Silver et al. 2018, "Residual Policy Learning"; Johannink et al. 2019):
     tau / tau_max = clip(base(x, goal) + scale * gate * a, -1, 1),
     gate = min(1, |goal - tip| / r)
 
-The base is the plan-then-servo controller (``base: pts``, the stronger one: 0.95 at 1 mm on
-100 seeded fig3 goals) or the operational-space controller (``base: osc``, 0.70), both in
-:mod:`training.controllers`.
+The base is the plan-then-servo controller (``base: pts``, the stronger one on the nominal task:
+0.95 at 1 mm on 100 seeded fig3 goals), its tip-feedback variant (``base: pts_feedback``, the
+bar on the robust task, where the plant differs from the controller's model) or the
+operational-space controller (``base: osc``, 0.70), all in :mod:`training.controllers`.
 
 The gate keeps the goal a fixed point of the closed loop: without it any residual the network
 outputs at the goal (SAC's deterministic mean is never exactly 0) becomes a constant force
@@ -29,15 +30,18 @@ turns a trained model back into a batched policy for evaluation. Both take the s
 ``model.json`` by training/train.py; rl_zoo3 records it in the run's ``config.yml`` as the
 ``vec_env_wrapper`` entry, e.g. ``{training.residual.ResidualVecEnv: {base: pts, scale: 0.3}}``).
 
-**The plan in the observation** (``plan_obs: true``, base ``pts`` only). Plan-then-servo acts on
-a plan ``x*`` it made when the goal appeared, from the actuation it had then: the base's
-action is not a function of what the agent observes (tip, goal, actuation), so the residual's
-environment is not Markov. With ``plan_obs`` the observation's ``"observation"`` vector gains
-``tanh((x* - x) / (10 h v_max))`` (``2N`` entries: the remaining travel in units of ten
-control periods at each carriage's full-scale speed), which restores it. The same augmented
-observation goes to the policy at evaluation (:func:`residual_policy`). HER must not relabel
-such transitions (the plan belongs to the episode's goal, not to a relabelled one): train
-them with a plain replay buffer (the base reaches most goals, so the sparse reward is not
+**The plan in the observation** (``plan_obs: true``, bases ``pts`` and ``pts_feedback``).
+Plan-then-servo acts on a plan ``x*`` it made when the goal appeared, from the actuation it had
+then: the base's action is not a function of what the agent observes (tip, goal, actuation),
+so the residual's environment is not Markov. With ``plan_obs`` the observation's
+``"observation"`` vector gains ``tanh((x* - x) / (10 h v_max))`` (``2N`` entries: the
+remaining travel in units of ten control periods at each carriage's full-scale speed), which
+restores it. For ``pts_feedback`` ``x*`` is its current setpoint (the plan as its outer loop
+has corrected it from the measured tip), so the base acts on each observation before the
+agent sees it. The same augmented observation goes to the policy at evaluation
+(:func:`residual_policy`). HER must not relabel such transitions (the plan belongs to the
+episode's goal, not to a relabelled one): train them with a plain replay buffer (the base
+reaches most goals, so the sparse reward is not
 sparse); ``training.train`` refuses the combination.
 """
 
@@ -55,11 +59,14 @@ __all__ = ["ResidualVecEnv", "residual_policy", "make_base", "zero_residual_head
            "actuation_from_observation", "needs_plain_replay", "BASES"]
 
 #: Base controllers a residual can be learned on.
-BASES = ("pts", "osc")
+BASES = ("pts", "pts_feedback", "osc")
+
+#: The bases that servo to a plan (their ``reference``), which ``plan_obs`` can show the agent.
+PLAN_BASES = ("pts", "pts_feedback")
 
 
 def make_base(venv, spec: dict):
-    """The base controller named by ``spec["base"]`` (``"pts"`` or ``"osc"``, default
+    """The base controller named by ``spec["base"]`` (one of :data:`BASES`, default
     ``"osc"`` for the runs recorded before plan-then-servo existed) with the rest of ``spec``
     (less ``scale`` and ``gate_radius``) as its keyword arguments."""
     spec = dict(spec)
@@ -104,8 +111,8 @@ def _spec(spec: dict | None) -> _Spec:
         raise ValueError(f"residual.gate_radius must be >= 0 [m], got {radius}")
     if not isinstance(plan_obs, bool):
         raise ValueError(f"residual.plan_obs must be true or false, got {plan_obs!r}")
-    if plan_obs and spec.get("base", "osc") != "pts":
-        raise ValueError(f"residual.plan_obs needs base 'pts' (the only base with a plan), "
+    if plan_obs and spec.get("base", "osc") not in PLAN_BASES:
+        raise ValueError(f"residual.plan_obs needs a base with a plan, one of {PLAN_BASES}, "
                          f"got base {spec.get('base', 'osc')!r}")
     if not 0.0 <= penalty < float("inf"):
         raise ValueError(f"residual.penalty must be a finite number >= 0, got {penalty}")
@@ -148,7 +155,7 @@ def _with_plan(obs: dict, base, venv) -> dict:
     """``obs`` with the plan features appended to ``"observation"`` (``base`` has planned for
     the current goals)."""
     st = read_state(venv)
-    return _append(obs, _plan_features(base.target, st.x, st))
+    return _append(obs, _plan_features(base.reference, st.x, st))
 
 
 def actuation_from_observation(ob: np.ndarray, robot, alpha_near: np.ndarray) -> np.ndarray:
@@ -172,7 +179,7 @@ class ResidualVecEnv(VecEnvWrapper):
     or an SB3 vec env of :class:`envs.CTRReachEnv` (rl_zoo3's ``vec_env_wrapper``); the base
     controller reads its state (:func:`training.controllers.read_state`). The spec is ``spec``
     updated with the keyword arguments (rl_zoo3 passes the wrapper's YAML mapping as keywords):
-    ``base`` (``"pts"`` or ``"osc"``, default ``"osc"``), ``scale`` (default 0.3),
+    ``base`` (one of :data:`BASES`, default ``"osc"``), ``scale`` (default 0.3),
     ``gate_radius`` [m] (default 5e-3; 0 = no gate), ``plan_obs`` (default false: see the
     module's docstring), ``penalty`` (default 0: the training reward loses ``penalty *
     mean(a^2)`` per step, so the residual stays 0 where it does not pay for itself; evaluation
@@ -192,23 +199,26 @@ class ResidualVecEnv(VecEnvWrapper):
         self._penalties = None
         self.base = make_base(venv, spec)
         self._obs = None
+        self._base_action = None
         self._x = None    # (B, 2N) the actuation the agent last observed
 
     def _observe(self, obs):
-        self._obs = obs
+        self._obs, self._base_action = obs, None
         if not self.plan_obs:
             return obs
+        # the base acts on this observation now: it plans for new goals (and pts_feedback
+        # corrects its setpoint) before the agent sees the plan it will follow
+        self._base_action = self.base(obs)
         st = read_state(self.venv)
-        self.base.replan(st)    # plans for new goals now, so the plan is in what the agent sees
         self._x = st.x.copy()
-        return _append(obs, _plan_features(self.base.target, st.x, st))
+        return _append(obs, _plan_features(self.base.reference, st.x, st))
 
     def _terminal_with_plan(self, term: dict, i: int) -> dict:
         """The terminal observation of robot ``i`` (already reset: its state is gone) with the
         features of the plan it was following, at the actuation the observation describes."""
         robot = self.base.robot
         x = actuation_from_observation(term["observation"], robot, self._x[i, robot.n_tubes:])
-        return _append(term, _plan_features(self.base.target[i], x, read_state(self.venv)))
+        return _append(term, _plan_features(self.base.reference[i], x, read_state(self.venv)))
 
     def reset(self):
         return self._observe(self.venv.reset())
@@ -218,7 +228,8 @@ class ResidualVecEnv(VecEnvWrapper):
         if self.penalty > 0:
             a = np.clip(np.asarray(actions, np.float64), -1.0, 1.0)
             self._penalties = self.penalty * np.mean(a ** 2, -1)
-        self.venv.step_async(_combine(self.base(self._obs), actions, weight))
+        base = self.base(self._obs) if self._base_action is None else self._base_action
+        self.venv.step_async(_combine(base, actions, weight))
 
     def step_wait(self):
         obs, rewards, dones, infos = self.venv.step_wait()

@@ -12,7 +12,7 @@ import torch
 
 import envs
 from training import evaluate, train
-from training.controllers import PlanThenServoController
+from training.controllers import PlanThenServoController, PlanThenServoFeedbackController
 from training.residual import (
     PLAN_OBS_PERIODS,
     ResidualVecEnv,
@@ -113,13 +113,39 @@ def test_a_zeroed_head_acts_zero_so_the_untrained_agent_is_its_base(algo):
             assert float(model.actor_target(obs_t).abs().max()) == 0.0
 
 
+def test_a_zero_residual_on_pts_feedback_is_pts_feedback_and_sees_its_setpoint():
+    """Base ``pts_feedback`` on a plant off its model (the robust task's ingredients): a zero
+    residual drives the robots exactly as the bare feedback controller does, and the plan
+    features follow its corrected setpoint (its ``reference``), not the first plan."""
+    kw = dict(max_episode_steps=40, plant_scale=0.1, tip_force=0.3, tip_noise=1e-4)
+    spec = {"base": "pts_feedback", "plan_obs": True, "table_size": TABLE}
+    wrapped = ResidualVecEnv(envs.CTRReachVecEnv(2, **kw), spec)
+    bare_env = envs.CTRReachVecEnv(2, **kw)
+    for e in (wrapped, bare_env):
+        e.seed(11)
+    obs = wrapped.reset()
+    bare_obs = bare_env.reset()
+    bare = PlanThenServoFeedbackController(bare_env, table_size=TABLE)
+    n_plain = bare_env.observation_space["observation"].shape[0]
+    corrected = False
+    for _ in range(35):
+        a_bare = bare(bare_obs)      # the base acts first: the agent sees the setpoint it uses
+        np.testing.assert_allclose(obs["observation"][:, n_plain:],
+                                   _features(bare.reference, bare_env.state()), atol=1e-6)
+        corrected |= bool(np.any(bare.reference != bare.target))
+        obs, *_ = wrapped.step(np.zeros((2, 4), np.float32))
+        bare_obs, *_ = bare_env.step(a_bare)
+    np.testing.assert_allclose(wrapped.venv.task.robots.x, bare_env.task.robots.x, atol=1e-12)
+    assert corrected     # the outer loop moved a setpoint: the features followed it
+
+
 def test_plan_obs_with_her_is_refused_by_name():
     hp = train.load_hyperparams("tqc", ENV)          # the HER entry
     hp["vec_env_wrapper"] = [{"training.residual.ResidualVecEnv": dict(SPEC)}]
     venv = train.make_venv(ENV, hp, n_envs=2)
     with pytest.raises(ValueError, match="plan_obs or penalty with HerReplayBuffer"):
         train.make_model("tqc", hp, venv, seed=0, log_dir=None)
-    with pytest.raises(ValueError, match="plan_obs needs base 'pts'"):
+    with pytest.raises(ValueError, match="plan_obs needs a base with a plan"):
         ResidualVecEnv(envs.CTRReachVecEnv(1), {"base": "osc", "plan_obs": True})
     with pytest.raises(ValueError, match="plan_obs must be true or false"):
         ResidualVecEnv(envs.CTRReachVecEnv(1), {"base": "pts", "plan_obs": "yes"})
