@@ -27,8 +27,9 @@ from torchpvs.mechanics import (
     sum_dim,
     tip_pose,
 )
+from torchpvs.options import SolverOptions
+from torchpvs.plan import tube_tensors
 from torchpvs.sections import build_layout, n_coordinates
-from torchpvs.solver import SolverOptions, tube_tensors
 
 
 @pytest.mark.parametrize("order", [0, 2, 4])

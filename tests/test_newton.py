@@ -13,20 +13,15 @@ from hypothesis import given, settings
 from hypothesis import strategies as st
 
 import torchpvs as tp
-from torchpvs import newton
+from torchpvs import batch_linalg
+from torchpvs.batch_linalg import active_index, chunked, compact, compact_scaled, expand, take
+from torchpvs.kernel import EAGER, KERNELS
 from torchpvs.newton import (
-    KERNELS,
     Problem,
     _armijo,
     _damped_step,
-    active_index,
-    chunked,
-    compact,
-    compact_scaled,
-    expand,
     scaled_residual,
     stability_threshold,
-    take,
     tolerance,
 )
 
@@ -48,11 +43,9 @@ def jacobi(H: torch.Tensor) -> torch.Tensor:
 
 
 def test_active_index_skips_the_gathers_only_when_everything_is_active():
-    """newton.active_index returns None (compact/take/expand are the identity) exactly when
+    """batch_linalg.active_index returns None (compact/take/expand are the identity) exactly when
     every coordinate of every element is active; otherwise the gathers give each element's
     active coordinates first."""
-    from torchpvs.newton import active_index, compact, expand, take
-
     H = torch.randn(2, 4, 4, dtype=torch.float64)
     v = torch.randn(2, 4, dtype=torch.float64)
     full = torch.ones(2, 4, dtype=torch.float64)
@@ -199,30 +192,47 @@ def test_chunked_equals_one_call(monkeypatch):
     scale = torch.linspace(1, 2, B, dtype=DT)
     whole = fn(q, prob, scale, shift=1.0)
     calls.clear()
-    monkeypatch.setattr(newton, "CHUNK_BYTES", 16 * nq * nq * 8)    # 16 rows per chunk
+    monkeypatch.setattr(batch_linalg, "CHUNK_BYTES", 16 * nq * nq * 8)    # 16 rows per chunk
     parts = chunked(fn, q, prob, scale, shift=1.0)
     assert calls == [16] * 6 + [4]
     assert all(torch.equal(a, b) for a, b in zip(parts, whole, strict=True))
 
 
-def test_kernels_registry_drives_the_solve(monkeypatch):
-    """SolverOptions(kernel=name) runs KERNELS[name] with the documented call
-    ``kernel(q0, problem, L_char, *, method, tol, max_iter, ...)``: a spy around the default
-    kernel gives the default solve's equilibrium; an unknown name is refused."""
-    assert KERNELS["newton"] is newton.newton
-    seen = []
+def test_every_per_element_computation_goes_through_the_kernel(monkeypatch):
+    """The kernel seam (torchpvs.kernel): SolverOptions(kernel=name) runs every per-element
+    computation of the driver through KERNELS[name] -- the cold guess, the Newton solve, the
+    single steps of the order estimate, the tip poses, the new-section step of the one-sided
+    forces at a kink and the SPD solve of the rotation predictor -- so a kernel registered
+    with the eager functions wrapped sees each of them called, and returns the default
+    solve's results bit for bit. An unknown name is refused."""
+    assert isinstance(KERNELS["newton"], tp.kernel.Kernel) and KERNELS["newton"] is EAGER
+    calls: dict[str, int] = {}
 
-    def spy(q, prob, L_char, **kw):
-        seen.append((tuple(q.shape), tuple(L_char.shape), kw["method"]))
-        return newton.newton(q, prob, L_char, **kw)
+    def counted(name, fn):
+        def wrapper(*args, **kwargs):
+            calls[name] = calls.get(name, 0) + 1
+            return fn(*args, **kwargs)
+        return wrapper
 
+    spy = type(EAGER)(**{f: counted(f, getattr(EAGER, f)) for f in EAGER._fields})
     monkeypatch.setitem(KERNELS, "spy", spy)
     scene = tp.load_scene("renda2021_fig3")
-    rot = torch.tensor([[0.0, 0.5], [0.0, 1.0]], dtype=DT)
-    opts = dict(order=2, n_magnus=8, compute_forces=False)
-    ref = tp.solve(scene, rotation=rot, options=tp.SolverOptions(**opts))
-    eq = tp.solve(scene, rotation=rot, options=tp.SolverOptions(kernel="spy", **opts))
-    assert seen and all(s[0][0] == 2 and s[1] == (2,) and s[2] == "minimize" for s in seen)
-    assert torch.equal(eq.tip_position, ref.tip_position) and torch.equal(eq.q, ref.q)
+    Ls = scene.tubes[0].straight_length        # the outer tube's kink at the orifice
+    cases = [  # (what the call exercises, keyword arguments of solve)
+        ("cold automatic order", dict(rotation=torch.tensor([[0.0, 0.5], [0.0, 2.0]], dtype=DT))),
+        ("a kink at the orifice", dict(insertion=torch.tensor([[Ls, Ls + 0.02]], dtype=DT))),
+    ]
+    for what, kw in cases:
+        ref = tp.solve(scene, **kw)
+        eq = tp.solve(scene, **kw, options=tp.SolverOptions(kernel="spy"))
+        for a, b in ((eq.q, ref.q), (eq.tip_position, ref.tip_position),
+                     (eq.actuation_forces, ref.actuation_forces),
+                     (eq.actuation_forces_insertion, ref.actuation_forces_insertion)):
+            assert torch.equal(a.nan_to_num(), b.nan_to_num()), what
+    # warm, rotations only: the predictor's solve
+    e0 = tp.solve(scene, options=tp.SolverOptions(kernel="spy"))
+    tp.solve(scene, rotation=torch.tensor(scene.actuation.rotation, dtype=DT) + 0.02,
+             initial=e0, options=tp.SolverOptions(kernel="spy"))
+    assert set(calls) == set(EAGER._fields), calls
     with pytest.raises(ValueError, match="options.kernel"):
         tp.SolverOptions(kernel="no-such-kernel")

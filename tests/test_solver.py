@@ -340,12 +340,12 @@ def test_stable_is_the_smallest_scaled_eigenvalue_above_threshold(method):
 
 def test_rotation_predictor_is_a_first_order_step_along_the_branch():
     """Implicit function theorem: along a branch dq*/dalpha = -H^-1 U_q,alpha. The predictor
-    (solver._rotation_predictor, from the warm start's Hessian alone) must land O(dalpha^2)
+    (predictor.rotation_predictor, from the warm start's Hessian alone) must land O(dalpha^2)
     from the new equilibrium: for a 2 deg step on the Fig. 3 and three-tube robots its error is
     below 5% of the warm start's own distance, and halving the step divides it by about 4."""
     from envs.robots import rvim_three_tube
     from torchpvs.plan import tube_tensors
-    from torchpvs.solver import _rotation_predictor
+    from torchpvs.predictor import rotation_predictor
 
     opts = tp.SolverOptions(order=2, n_magnus=8, compute_forces=False, tol=1e-13)
     for scene in (tp.load_scene("renda2021_fig3"), rvim_three_tube().scene):
@@ -362,7 +362,7 @@ def test_rotation_predictor_is_a_first_order_step_along_the_branch():
             A1[:, :N - 1] += math.radians(0.5 * deg)     # every tube turns, by different steps
             A1[:, -1] += math.radians(deg)
             e1 = tp.solve(scene, insertion=D, rotation=A1, options=opts)
-            pred = _rotation_predictor(e0, e0.q.clone(), scene, tubes, D, A1, Z, Z, opts)
+            pred = rotation_predictor(e0, e0.q.clone(), scene, tubes, D, A1, Z, Z, opts)
             err = (pred - e1.q).norm(dim=-1)
             assert bool((err < 0.05 * (e0.q - e1.q).norm(dim=-1)).all()), err
             errs.append(err)
@@ -391,14 +391,14 @@ def test_warm_rotation_steps_converge_to_the_same_equilibria_in_fewer_iterations
 
 
 def test_default_guess_is_the_torsionless_bending_on_every_active_section():
-    """The cold-start guess (solver._default_guess, from the kernel's compact maps) against
+    """The cold-start guess (kernel.default_guess, from the compact maps) against
     the same quantity from the full node fields at q = 0: on every active section, the bending
     coefficients are the Legendre projection of the stiffness-weighted precurvature turned by
     the base angles (eq. 31 without torsion); every other coordinate is zero."""
     from envs.robots import rvim_three_tube
+    from torchpvs.kernel import default_guess
     from torchpvs.mechanics import node_fields
     from torchpvs.plan import plan_for
-    from torchpvs.solver import _default_guess
 
     for scene in (tp.load_scene("renda2021_fig3"), rvim_three_tube().scene):
         N = scene.n_tubes
@@ -414,7 +414,7 @@ def test_default_guess_is_the_torsionless_bending_on_every_active_section():
         lay, maps = plan.layout(plan.tubes, D, rot, Z, Z, torch.zeros(B, dtype=torch.bool),
                                 disc, nq)
         tab = disc.tables(torch.float64, torch.device("cpu"))
-        got = _default_guess(lay, maps, tab, disc, N)
+        got = default_guess(lay, maps, tab, disc, N)
         f = node_fields(torch.zeros(B, nq, dtype=torch.float64), lay, tab["xq"], tab["phi_q"],
                         tab["Q_q"])
         EI = lay.EI[:, None, None, :] * lay.present[:, :, None, :]

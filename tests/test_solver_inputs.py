@@ -201,14 +201,15 @@ def test_plan_reuse_is_not_fooled_by_reused_buffers():
 
 
 def test_chunked_batches_equal_the_whole_batch(monkeypatch):
-    """Large batches run in cache-sized chunks (newton.CHUNK_BYTES): elements are independent, so
+    """Large batches run in cache-sized chunks (batch_linalg.CHUNK_BYTES): elements are
+    independent, so
     a chunked solve gives the same equilibria, forces and verdicts as one whole batch."""
-    import torchpvs.newton as newton
+    import torchpvs.batch_linalg as batch_linalg
 
     alpha = torch.linspace(0.0, 4.0, 40, dtype=torch.float64)
     rot = torch.stack([torch.zeros_like(alpha), alpha], -1)
     whole = tp.solve(SC, rotation=rot)
-    monkeypatch.setattr(newton, "CHUNK_BYTES", 1)      # chunks of 16 elements
+    monkeypatch.setattr(batch_linalg, "CHUNK_BYTES", 1)      # chunks of 16 elements
     parts = tp.solve(SC, rotation=rot)
     assert float((whole.tip_position - parts.tip_position).abs().max()) < 1e-12
     assert float((whole.actuation_forces - parts.actuation_forces).abs().max()) < 1e-9
@@ -217,7 +218,7 @@ def test_chunked_batches_equal_the_whole_batch(monkeypatch):
 
 
 def test_no_stability_verdict_without_an_equilibrium():
-    """Issue 27, item 12: a CTR with precurvature 1e6 1/m does not converge (61 iterations,
+    """Regression: a CTR with precurvature 1e6 1/m does not converge (61 iterations,
     residual 0.12) and was reported stable=True. A state that is not an equilibrium gets no
     verdict: stable is False and the contract's "stable" is null (as the standard reference
     does for a failed solve, tests/test_reference.py)."""
@@ -235,7 +236,7 @@ def test_no_stability_verdict_without_an_equilibrium():
 
 
 def test_time_limit_bounds_a_hard_solve_and_says_so():
-    """Issue 27, item 10 (the solve part): a 10 N·m tip moment on the Fig. 3 robot fails after
+    """Regression (time bound of a solve): a 10 N·m tip moment on the Fig. 3 robot fails after
     61 iterations (about 10 s on one thread, 100 s with default threads on a loaded machine).
     SolverOptions.time_limit bounds the Newton iterations; the answer is reported unconverged
     with the reason, not NaN, and the call returns soon after the limit (the remaining work is

@@ -11,9 +11,10 @@ from .force_control import ForceControlled, solve_force_controlled
 from .implicit import NearSingularStiffnessWarning
 from .inverse_kinematics import IKResult, inverse_kinematics
 from .layer import CTR
+from .options import AccuracyWarning, SolverError, SolverOptions
 from .plan import Plan
 from .scene import Actuation, Load, Scene, SceneError, Tube, builtin_scenes, load_scene
-from .solver import AccuracyWarning, SolverError, SolverOptions, solve
+from .solver import solve
 
 __all__ = [
     "Tube", "Actuation", "Load", "Scene", "SceneError", "load_scene", "builtin_scenes",

@@ -40,10 +40,12 @@ from dataclasses import dataclass, replace
 import numpy as np
 import torch
 
+from .inputs import check_actuation
+from .options import SolverOptions
 from .plan import tube_tensors
 from .scene import Scene, load_scene
 from .sections import TubeTensors
-from .solver import SolverOptions, check_actuation, solve_tensors
+from .solver import solve_tensors
 
 __all__ = ["calibrate", "Calibration", "Identifiability", "CalibrationStep", "PARAMETERS"]
 

@@ -34,8 +34,9 @@ from typing import Any
 import torch
 
 from .equilibrium import Equilibrium
+from .options import SolverOptions, check_time_limit, within_deadline
 from .scene import Scene, load_scene
-from .solver import SolverOptions, check_time_limit, solve, within_deadline
+from .solver import solve
 
 __all__ = ["ActuationPath", "Continuation", "FoldEvent", "continuation"]
 

@@ -9,6 +9,7 @@ from typing import TYPE_CHECKING, Any
 
 import torch
 
+from .batch_linalg import active_index, compact_scaled, take
 from .forces import equilibrium_forces, paper_actuation
 from .lie import exp_se3
 from .mechanics import (
@@ -20,14 +21,14 @@ from .mechanics import (
     section_start_poses,
     split_q,
 )
-from .newton import active_index, compact_scaled, stability_threshold, take
+from .newton import stability_threshold
 
 if TYPE_CHECKING:
     from .implicit import ImplicitContext
+    from .options import SolverOptions
     from .plan import Plan
     from .scene import Scene
     from .sections import Discretization, Layout, TubeTensors
-    from .solver import SolverOptions
 
 __all__ = ["Equilibrium", "SolveContext"]
 
@@ -50,7 +51,8 @@ def _scaled_stiffness(H: torch.Tensor, qmask: torch.Tensor):
     """``S H S`` of a Hessian ``H (B, n, n)`` with its active mask ``qmask (B, n)`` (on the
     padded or the kernel's compact coordinates), ``S = diag(|H_ii|^-1/2)`` on the active
     coordinates, gathered to each element's active coordinates
-    (:func:`torchpvs.newton.compact`, ``(B, nA, nA)``; padding rows are identity rows), and the
+    (:func:`torchpvs.batch_linalg.compact`, ``(B, nA, nA)``; padding rows are identity rows),
+    and the
     gathered active mask ``(B, nA)`` as float."""
     d = H.diagonal(dim1=-2, dim2=-1).abs()
     active = qmask * (d > 0)

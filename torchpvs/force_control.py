@@ -53,8 +53,9 @@ import torch
 
 from .equilibrium import Equilibrium
 from .jacobians import actuator_stiffness, control_jacobians
+from .options import SolverError, SolverOptions, check_time_limit, within_deadline
 from .scene import Scene, load_scene
-from .solver import SolverError, SolverOptions, check_time_limit, solve, within_deadline
+from .solver import solve
 
 __all__ = ["ForceControlled", "commanded_force_jacobian", "solve_force_controlled"]
 

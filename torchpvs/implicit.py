@@ -22,8 +22,8 @@ from dataclasses import dataclass, fields, replace
 
 import torch
 
+from .batch_linalg import active_index, compact
 from .mechanics import expand_hessian, potential, tip_pose
-from .newton import active_index, compact
 from .sections import Discretization, TubeTensors, build_layout
 
 __all__ = ["ImplicitContext", "ImplicitEquilibrium", "NearSingularStiffnessWarning",

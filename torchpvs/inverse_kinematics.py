@@ -24,9 +24,11 @@ from dataclasses import dataclass
 
 import torch
 
+from .inputs import check_actuation
 from .jacobians import tip_jacobian
+from .options import SolverOptions, check_time_limit, within_deadline
 from .scene import Scene, load_scene
-from .solver import SolverOptions, check_actuation, check_time_limit, solve, within_deadline
+from .solver import solve
 
 __all__ = ["IKResult", "inverse_kinematics"]
 

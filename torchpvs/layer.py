@@ -11,10 +11,12 @@ import torch
 from torch import nn
 
 from .equilibrium import Equilibrium
+from .inputs import batch_inputs
+from .options import SolverOptions
 from .plan import Plan
 from .scene import Scene, load_scene
 from .sections import TubeTensors, precurvature_coefficients
-from .solver import SolverOptions, as_batch, check_actuation, solve_tensors
+from .solver import solve_tensors
 
 __all__ = ["CTR"]
 
@@ -137,20 +139,12 @@ class CTR(nn.Module):
         optional tip loads ``(3,)``/``(B, 3)`` [N], [N·m] in the base frame."""
         ref = self.E
         dtype, device = ref.dtype, ref.device
-        N = self.scene.n_tubes
-        D = as_batch(insertion, N, "insertion", dtype, device)
-        A = as_batch(rotation, N, "rotation", dtype, device)
         zeros = torch.zeros(3, dtype=dtype, device=device)
-        F = as_batch(zeros if tip_force is None else tip_force, 3, "tip_force", dtype, device)
-        M = as_batch(zeros if tip_moment is None else tip_moment, 3, "tip_moment", dtype,
-                      device)
-        B = max(t.shape[0] for t in (D, A, F, M))
-        for name, t in (("insertion", D), ("rotation", A), ("tip_force", F),
-                        ("tip_moment", M)):
-            if t.shape[0] not in (1, B):
-                raise ValueError(f"{name} has batch size {t.shape[0]}, expected 1 or {B}")
-        D, A, F, M = (t.expand(B, -1) for t in (D, A, F, M))
-        check_actuation(D.detach(), self.scene)
+        # broadcast views: gradients reach (1, N) inputs through the expand
+        D, A, F, M = batch_inputs(self.scene, insertion, rotation,
+                                  zeros if tip_force is None else tip_force,
+                                  zeros if tip_moment is None else tip_moment, dtype, device,
+                                  contiguous=False)
         self._check_properties()
         tubes, plan = self._solver_tubes()
         return solve_tensors(self.scene, tubes, D, A, F, M, self.options, initial, plan)

@@ -1,10 +1,8 @@
-"""Stage 5a — the Newton kernel: one fixed discretization, a batch of elements, ``q -> q*``.
+"""Stage 5a — damped Newton: one fixed discretization, a batch of elements, ``q -> q*``.
 
-The driver (:mod:`torchpvs.solver`) chooses the discretization, builds the layout and the
-``q``-independent maps, and calls a kernel from :data:`KERNELS` (a registry in the spirit of
-torchdiffeq's solvers, so a fused or GPU kernel can be added without touching the driver).
-
-The default kernel, ``"newton"``, is lean where a batch spends its time:
+The eager kernel's iteration (:data:`torchpvs.kernel.EAGER`'s ``solve``); the driver
+(:mod:`torchpvs.solver`) reaches it only through :mod:`torchpvs.kernel`. It is lean where a
+batch spends its time:
 
 * the gradient and exact Hessian come from :func:`torchpvs.mechanics.elastic_grad_hess` (GEMMs
   and strided block writes, already zero on inactive coordinates: no dense mask pass);
@@ -19,11 +17,11 @@ The default kernel, ``"newton"``, is lean where a batch spends its time:
 from __future__ import annotations
 
 import time
-from collections.abc import Callable
 from typing import TYPE_CHECKING, NamedTuple
 
 import torch
 
+from .batch_linalg import active_index, chunked, compact, compact_scaled, expand, take
 from .mechanics import (
     compact_q,
     elastic_energy_maps,
@@ -37,9 +35,8 @@ from .mechanics import (
 if TYPE_CHECKING:
     from .sections import Layout
 
-__all__ = ["KERNELS", "NewtonResult", "Problem", "active_index", "chunked", "compact",
-           "compact_scaled", "derivatives", "expand", "merit", "newton", "stability_threshold",
-           "subset", "take"]
+__all__ = ["NewtonResult", "Problem", "derivatives", "merit", "newton", "scaled_residual",
+           "stability_threshold", "tolerance"]
 
 
 class NewtonResult(NamedTuple):
@@ -63,6 +60,13 @@ class NewtonResult(NamedTuple):
     energy: torch.Tensor | None = None
 
 
+_SHARED = ("phi", "Qb", "values_T", "Q_QQ", "phi_PQ")   # maps entries without a batch dim
+
+
+# maps entries the merit reads without a tip load (mechanics.elastic_energy_maps)
+_MERIT = ("bvec", "qmask", "psi0", "h", "ustar", "EIw", "GJw", "guide", "guide_const")
+
+
 class Problem(NamedTuple):
     """What a kernel needs: the layout, quadrature tables and precomputed maps of one batch."""
 
@@ -72,78 +76,21 @@ class Problem(NamedTuple):
     with_load: bool
     has_moment: bool
 
+    def subset(self, idx: torch.Tensor | slice, merit_only: bool = False) -> Problem:
+        """The problem restricted to batch rows ``idx`` (indices, or a slice for views without a
+        copy). Only what is read is copied: the layout only with a tip load (the elastic terms
+        live in the maps; without load the subset's ``lay`` is None), and for ``merit_only`` only
+        the energy's entries (and the pose's, with a load)."""
+        lay = type(self.lay)(*(v[idx] for v in self.lay)) if self.with_load else None
 
-_SHARED = ("phi", "Qb", "values_T", "Q_QQ", "phi_PQ")   # maps entries without a batch dim
+        def wanted(k: str) -> bool:
+            if not merit_only:
+                return True
+            return k in _MERIT or (self.with_load and (k == "cidx" or k.startswith("pose_")))
 
-
-# maps entries the merit reads without a tip load (mechanics.elastic_energy_maps)
-_MERIT = ("bvec", "qmask", "psi0", "h", "ustar", "EIw", "GJw", "guide", "guide_const")
-
-
-def subset(prob: Problem, idx: torch.Tensor | slice, merit_only: bool = False) -> Problem:
-    """The problem restricted to batch rows ``idx`` (indices, or a slice for views without a
-    copy). Only what is read is copied: the layout only with a tip load (the elastic terms
-    live in the maps; without load the subset's ``lay`` is None), and for ``merit_only`` only
-    the energy's entries (and the pose's, with a load)."""
-    lay = type(prob.lay)(*(v[idx] for v in prob.lay)) if prob.with_load else None
-
-    def wanted(k: str) -> bool:
-        if not merit_only:
-            return True
-        return k in _MERIT or (prob.with_load and (k == "cidx" or k.startswith("pose_")))
-
-    maps = {k: (v if k in _SHARED else v[idx]) for k, v in prob.maps.items()
-            if k in _SHARED or wanted(k)}
-    return prob._replace(lay=lay, maps=maps)
-
-
-def active_index(qmask: torch.Tensor) -> torch.Tensor | None:
-    """``(B, nA)`` indices of each element's active coordinates first (``nA`` = the most active
-    coordinates in the batch), padded with distinct inactive ones. Gathering a Hessian with
-    :func:`compact` then gives ``nA x nA`` systems (the padding rows are identity rows, as the
-    Hessian is identity on inactive coordinates), so the factorizations and every dense pass
-    skip the padded coordinates (about half of them for the Fig. 3 robot). ``None`` when every
-    coordinate is active (the usual case on the compact coordinates of a batch that shares its
-    sections): :func:`compact`, :func:`take` and :func:`expand` are then the identity, and no
-    gather is made."""
-    if qmask.shape[0] and bool(qmask.all()):
-        return None
-    n_active = int(qmask.sum(-1).amax()) if qmask.shape[0] else 0
-    order = torch.argsort((qmask == 0).to(torch.int8), dim=-1, stable=True)
-    return order[:, :max(n_active, 1)]
-
-
-def compact(H: torch.Tensor, act: torch.Tensor | None) -> torch.Tensor:
-    """``H[b][act[b]][:, act[b]]``: ``(B, nq, nq) -> (B, nA, nA)``."""
-    if act is None:
-        return H
-    B, nA = act.shape
-    nq = H.shape[-1]
-    if B < 64:      # (two gathers: fewer operations, which bound small batches)
-        rows = torch.gather(H, 1, act[:, :, None].expand(B, nA, nq))
-        return torch.gather(rows, 2, act[:, None, :].expand(B, nA, nA))
-    # One gather on flat indices: half the memory traffic of gathering rows, then columns.
-    flat = (act[:, :, None] * nq + act[:, None, :]).reshape(B, nA * nA)
-    return H.reshape(B, nq * nq).gather(1, flat).view(B, nA, nA)
-
-
-def take(v: torch.Tensor, act: torch.Tensor | None) -> torch.Tensor:
-    """``v[b][act[b]]``: ``(B, nq) -> (B, nA)``."""
-    return v if act is None else torch.gather(v, 1, act)
-
-
-def compact_scaled(H: torch.Tensor, scale: torch.Tensor, act: torch.Tensor | None):
-    """The Jacobi-scaled Hessian ``S H S`` (``S = diag(scale)``, ``scale (B, nq)``) on each
-    element's active coordinates: ``(B, nA, nA)``, and the gathered scale ``(B, nA)``."""
-    sc = take(scale, act)
-    return sc[:, :, None] * compact(H, act) * sc[:, None, :], sc
-
-
-def expand(v: torch.Tensor, act: torch.Tensor | None, nq: int) -> torch.Tensor:
-    """Inverse of the compaction for vectors: ``(B, nA) -> (B, nq)``, zero elsewhere."""
-    if act is None:
-        return v
-    return torch.zeros(v.shape[0], nq, dtype=v.dtype, device=v.device).scatter_(1, act, v)
+        maps = {k: (v if k in _SHARED else v[idx]) for k, v in self.maps.items()
+                if k in _SHARED or wanted(k)}
+        return self._replace(lay=lay, maps=maps)
 
 
 def derivatives(q: torch.Tensor, prob: Problem, energy: bool = False):
@@ -243,9 +190,6 @@ def scaled_residual(g: torch.Tensor, H: torch.Tensor, L_char: torch.Tensor):
     return res, scale
 
 
-CHUNK_BYTES = 4 << 20    # Hessian bytes per chunk of a large batch (cache-sized working set)
-
-
 def newton(q: torch.Tensor, prob: Problem, L_char: torch.Tensor, *, method: str, tol: float,
            max_iter: int, deadline: float | None = None) -> NewtonResult:
     """Batched Newton on the total potential from ``q (B, nq)``; see the module docstring.
@@ -265,21 +209,6 @@ def newton(q: torch.Tensor, prob: Problem, L_char: torch.Tensor, *, method: str,
     # mode) was ~10 % of a B = 1024 call, for the few callers that need it (implicit backward,
     # actuator stiffness: implicit.full_hessian).
     return NewtonResult(expand_q(qc, cidx, nq), H, expand_q(g, cidx, nq), *rest)
-
-
-def chunked(fn, q: torch.Tensor, prob: Problem, *batched: torch.Tensor, **kwargs) -> tuple:
-    """``fn(q, prob, *batched, **kwargs)`` (a tuple of ``(B, ...)`` tensors) over cache-sized
-    chunks of the batch (``CHUNK_BYTES`` of ``nq x nq`` Hessians each), concatenated. Elements
-    are independent, and the dense per-element passes are memory-bound at large B."""
-    B, nq = q.shape
-    chunk = max(16, CHUNK_BYTES // (nq * nq * q.element_size()))
-    if B <= 1.5 * chunk:
-        return tuple(fn(q, prob, *batched, **kwargs))
-    parts = []
-    for start in range(0, B, chunk):
-        rows = slice(start, min(B, start + chunk))     # views: the maps are not copied
-        parts.append(fn(q[rows], subset(prob, rows), *(t[rows] for t in batched), **kwargs))
-    return tuple(torch.cat(field) for field in zip(*parts, strict=True))
 
 
 def _newton(q: torch.Tensor, prob: Problem, L_char: torch.Tensor, *, method: str, tol: float,
@@ -347,7 +276,7 @@ def _newton(q: torch.Tensor, prob: Problem, L_char: torch.Tensor, *, method: str
             idx, q, g, H, scale, lam, tested, Lc = (t[keep] for t in
                                                     (idx, q, g, H, scale, lam, tested, Lc))
             U = None if U is None else U[keep]
-            sub = subset(sub, keep)
+            sub = sub.subset(keep)
             todo = torch.ones_like(lam, dtype=torch.bool)
             qmask = sub.maps["qmask"]
             act = active_index(qmask)
@@ -425,7 +354,7 @@ def _saddle_test(q, H, g, scale, new, prob: Problem, L_char, act):
         return q, left, pd
     sel, v = sel[neg], expand(vec[neg][:, :, 0] * sc[neg], None if a is None else a[neg],
                               q.shape[-1])
-    sub = subset(prob, sel, merit_only=True)
+    sub = prob.subset(sel, merit_only=True)
     v = v * sub.maps["qmask"]
     sign = torch.where((g[sel] * v).sum(-1) > 0, -1.0, 1.0).to(v.dtype)
     v = sign[:, None] * v / (v.abs().amax(-1, keepdim=True) * L_char[sel, None]).clamp(min=1e-30)
@@ -497,7 +426,7 @@ def _line_search(q, step, g, prob: Problem, todo, trust, f_q=None, max_halvings:
     if rows.numel() == 0:
         return q_new, accepted
     whole = rows.numel() == q.shape[0]
-    sub = prob if whole else subset(prob, rows, merit_only=True)
+    sub = prob if whole else prob.subset(rows, merit_only=True)
     qc, sc = (q, step) if whole else (q[rows], step[rows])
     f0 = merit(qc, sub, qc) if f_q is None else (f_q if whole else f_q[rows])
     slope = (g[rows] * sc).sum(-1)
@@ -507,7 +436,7 @@ def _line_search(q, step, g, prob: Problem, todo, trust, f_q=None, max_halvings:
     if rej_local.numel() == 0:
         return q_new, accepted
     rej = rows[rej_local]
-    sub = subset(sub, rej_local, merit_only=True)
+    sub = sub.subset(rej_local, merit_only=True)
     qr, sr, f0r, slr = qc[rej_local], sc[rej_local], f0[rej_local], slope[rej_local]
     t = torch.full_like(f0r, 0.5)
     done = torch.zeros_like(f0r, dtype=torch.bool)
@@ -525,12 +454,9 @@ def _line_search(q, step, g, prob: Problem, todo, trust, f_q=None, max_halvings:
         t = torch.where(done, t, 0.5 * t)
         if bool(ok.any()):   # only the rows still rejecting are evaluated again
             keep = (~ok).nonzero().flatten()
-            todo_r, sub_r = todo_r[keep], subset(sub_r, keep, merit_only=True)
+            todo_r, sub_r = todo_r[keep], sub_r.subset(keep, merit_only=True)
     # Elements whose line search failed keep a tiny step along the direction (progress guard).
     out = torch.where(done[:, None], out, qr + t[:, None] * sr)
     q_new[rej] = out
     return q_new, accepted
 
-
-#: Kernels by name: ``kernel(q0, problem, L_char, *, method, tol, max_iter) -> NewtonResult``.
-KERNELS: dict[str, Callable[..., NewtonResult]] = {"newton": newton}

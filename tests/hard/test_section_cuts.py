@@ -175,27 +175,26 @@ def test_nearly_empty_section_keeps_stability_verdict(gap):
 @pytest.mark.parametrize("name", list(CUTS))
 def test_new_section_step_matches_a_newton_step(name, monkeypatch):
     """The one-sided forces at a cut solve a section of length delta = 1e-7 m that appears there
-    with the rest held (solver._new_section_step): O(delta) accurate, like the one-sided
+    with the rest held (the kernel's section_step): O(delta) accurate, like the one-sided
     evaluation itself (the forces there move with D at up to ~100 N/m). A full Newton step on
     every coordinate (the fallback, O(delta^2) in the coordinates) gives the same forces on
     both sides to 100 N/m x delta = 1e-5 N (measured: 2.5e-7, 5.0e-7 and 6.8e-6 N on the cuts
     where it applies; at the coinciding tips no coordinates appear, and no step is made)."""
-    from torchpvs import solver
+    from torchpvs.kernel import EAGER, KERNELS
 
     applied = []
-    fast = solver._new_section_step
 
     def spy(*args):
-        out = fast(*args)
+        out = EAGER.section_step(*args)
         applied.append(bool(out[1].any()))
         return out
 
     D = actuation(name, 0.0)
-    monkeypatch.setattr(solver, "_new_section_step", spy)
-    p = tp.solve(SC, insertion=D)
-    monkeypatch.setattr(solver, "_new_section_step",
-                        lambda q, *a: (q, torch.zeros(q.shape[0], dtype=torch.bool)))
-    ref = tp.solve(SC, insertion=D)
+    monkeypatch.setitem(KERNELS, "spy", EAGER._replace(section_step=spy))
+    monkeypatch.setitem(KERNELS, "never", EAGER._replace(
+        section_step=lambda q, *a: (q, torch.zeros(q.shape[0], dtype=torch.bool))))
+    p = tp.solve(SC, insertion=D, options=tp.SolverOptions(kernel="spy"))
+    ref = tp.solve(SC, insertion=D, options=tp.SolverOptions(kernel="never"))
     assert any(applied) == (name != "tips coincide"), name
     assert torch.equal(p.force_kink, ref.force_kink)
     for a, b in ((p.actuation_forces, ref.actuation_forces),

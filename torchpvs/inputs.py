@@ -1,0 +1,67 @@
+"""Input checks and canonical batches shared by :func:`torchpvs.solve`, :class:`torchpvs.CTR`
+and the solvers built on them: every actuation and load becomes a ``(B, ...)`` tensor of one
+dtype and device, or a ``ValueError`` that names the field and the rule."""
+
+from __future__ import annotations
+
+import torch
+
+from .scene import Scene
+
+__all__ = ["as_batch", "batch_inputs", "check_actuation", "check_float_dtypes"]
+
+def as_batch(x, n: int, name: str, dtype, device) -> torch.Tensor:
+    t = torch.as_tensor(x, dtype=dtype, device=device)
+    if t.ndim == 1:
+        t = t[None]
+    if t.ndim != 2 or t.shape[-1] != n:
+        raise ValueError(f"{name} must have shape ({n},) or (B, {n}), got {tuple(t.shape)}")
+    if not torch.isfinite(t).all():
+        raise ValueError(f"{name} must be finite")
+    return t
+
+
+def check_actuation(D: torch.Tensor, scene: Scene) -> None:
+    if (D < 0).any():
+        raise ValueError("insertion: every D_j must be >= 0 (docs/conventions.md)")
+    if scene.n_tubes > 1 and (D[:, 1:] < D[:, :-1]).any():
+        raise ValueError("insertion: D_j must be >= D_{j-1} for every batch element "
+                         "(an inner tube's base lies behind the outer one's)")
+
+
+def check_float_dtypes(**inputs) -> None:
+    """Refuse floating-point tensors of a dtype the solver does not run in (half, bfloat16,
+    complex), naming the field; integers and Python numbers are converted."""
+    for name, x in inputs.items():
+        if isinstance(x, torch.Tensor) and x.dtype not in (torch.float32, torch.float64) \
+                and (x.is_floating_point() or x.is_complex()):
+            raise ValueError(f"{name}: dtype {x.dtype} is not supported; the solver runs in "
+                             f"torch.float32 or torch.float64 (convert the input, or set "
+                             f"SolverOptions(dtype=...))")
+
+
+def batch_inputs(scene: Scene, insertion, rotation, tip_force, tip_moment, dtype, device,
+                 contiguous: bool = True) -> tuple[torch.Tensor, ...]:
+    """``(D (B, N), alpha (B, N), F (B, 3), M (B, 3))`` from inputs of shape ``(n,)`` or
+    ``(B, n)`` (none ``None``), broadcast to the largest batch ``B``, with every field's
+    shape, batch size and finiteness checked and the actuation's ordering
+    (:func:`check_actuation`). ``contiguous=False`` keeps broadcast views (an autograd caller
+    whose gradients flow back to the ``(1, n)`` rows)."""
+    N = scene.n_tubes
+    D = as_batch(insertion, N, "insertion", dtype, device)
+    A = as_batch(rotation, N, "rotation", dtype, device)
+    F = as_batch(tip_force, 3, "tip_force", dtype, device)
+    M = as_batch(tip_moment, 3, "tip_moment", dtype, device)
+    sizes = [t.shape[0] for t in (D, A, F, M)]
+    if min(sizes) == 0:
+        raise ValueError("insertion, rotation, tip_force, tip_moment: batch size 0; give at least "
+                         "one row (shape (B, ...) with B >= 1)")
+    B = max(sizes)
+    for name, t in (("insertion", D), ("rotation", A), ("tip_force", F), ("tip_moment", M)):
+        if t.shape[0] not in (1, B):
+            raise ValueError(f"{name} has batch size {t.shape[0]}, expected 1 or {B}")
+    out = tuple(t.expand(B, -1) for t in (D, A, F, M))
+    if contiguous:
+        out = tuple(t.contiguous() for t in out)
+    check_actuation(out[0].detach(), scene)
+    return out

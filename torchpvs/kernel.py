@@ -1,0 +1,180 @@
+"""Stage 5a — the kernel seam: what the driver asks of a kernel, and the registry of kernels.
+
+The driver (:mod:`torchpvs.solver` with :mod:`torchpvs.order_control` and
+:mod:`torchpvs.predictor`) chooses discretizations, ramps loads, builds layouts and maps (the
+plan), and assembles the outputs; every computation it makes *per batch element* goes through
+one :class:`Kernel`: the cold-start guess, the Newton solve, the single Newton steps of the
+order estimate and the kink re-solves, the new-section step of the one-sided forces, the
+tip pose, and the SPD solves of the rotation predictor. A kernel is a :class:`Kernel` of plain
+functions registered in :data:`KERNELS` under a name (``SolverOptions(kernel=name)``), in the
+spirit of torchdiffeq's ``SOLVERS``; adding one (a compiled CPU kernel, a fused GPU kernel)
+touches no driver code, and a kernel that implements only some functions reuses the eager
+ones for the rest (``EAGER._replace(solve=my_solve)``).
+
+:data:`EAGER` (``"newton"``) is the reference: batched eager torch, on any device
+(:mod:`torchpvs.newton` for the damped iteration, :mod:`torchpvs.batch_linalg` for the
+per-element linear algebra, :mod:`torchpvs.mechanics` for energies and poses).
+"""
+
+from __future__ import annotations
+
+from collections.abc import Callable
+from typing import NamedTuple
+
+import torch
+
+from .batch_linalg import active_index, chunked, compact, compact_scaled, expand, spd_solve, take
+from .mechanics import (
+    compact_q,
+    expand_q,
+    section_grad_block,
+    start_angles,
+    sum_dim,
+    tip_pose,
+)
+from .newton import NewtonResult, Problem, derivatives, newton, scaled_residual
+from .sections import Discretization, n_coordinates
+
+__all__ = ["EAGER", "KERNELS", "Kernel", "default_guess", "new_section_step", "newton_step"]
+
+
+class Kernel(NamedTuple):
+    """The per-element computations of a solve (``B`` elements, ``nq`` padded coordinates, a
+    :class:`~torchpvs.newton.Problem` ``prob`` of one discretization). Every function is
+    batched and returns a success mask where it can fail; rows that fail are returned
+    unchanged, never NaN.
+
+    Attributes:
+        guess: ``guess(lay, maps, tab, disc, N) -> q0 (B, nq)``, the cold-start coordinates.
+        solve: ``solve(q0, prob, L_char, *, method, tol, max_iter, deadline) ->``
+            :class:`~torchpvs.newton.NewtonResult`: the equilibrium from ``q0`` (``L_char
+            (B,)`` [m] the residual's length scale, ``SolverOptions.tol``).
+        step: ``step(q, prob) -> (q1, ok)``: one undamped Newton step (the order estimate
+            and the re-solves of the one-sided forces).
+        section_step: ``section_step(q, prob, new (B, nq) bool, length) -> (q1, ok)``: the
+            coordinates ``new`` of a vanishing section solved for with the rest held.
+        pose: ``pose(q, lay, tab, constants) -> (tip (.., B, 3), R (.., B, 3, 3), extra)``:
+            the tip pose of :func:`torchpvs.mechanics.tip_pose` (``q`` may carry leading
+            dims).
+        spd_solve: ``spd_solve(H (B, n, n), rhs (B, n)) -> (x, ok)``: ``H^-1 rhs`` for the
+            stiffness at a solution (the rotation predictor).
+    """
+
+    guess: Callable[..., torch.Tensor]
+    solve: Callable[..., NewtonResult]
+    step: Callable[[torch.Tensor, Problem], tuple[torch.Tensor, torch.Tensor]]
+    section_step: Callable[..., tuple[torch.Tensor, torch.Tensor]]
+    pose: Callable[..., tuple]
+    spd_solve: Callable[[torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
+
+
+def newton_step(q: torch.Tensor, prob: Problem) -> tuple[torch.Tensor, torch.Tensor]:
+    """One undamped Newton step (Jacobi-scaled; Cholesky, and LU where the Hessian is indefinite,
+    as at an unstable equilibrium). Returns the new coordinates (``q`` where the step failed)
+    and the success mask. The step runs on the compact coordinates (mechanics.build_maps);
+    large batches go in cache-sized chunks of them (see batch_linalg.CHUNK_BYTES)."""
+    cidx = prob.maps["cidx"]
+    qc, ok = chunked(_one_newton_step, compact_q(q, cidx), prob)
+    return torch.where(ok[:, None], expand_q(qc, cidx, q.shape[-1]), q), ok
+
+
+def _one_newton_step(q, prob: Problem):
+    qmask = prob.maps["qmask"]
+    g, H = derivatives(q, prob)
+    H.diagonal(dim1=-2, dim2=-1).add_(1.0 - qmask)
+    act = active_index(qmask)
+    # Cholesky on H itself (invariant under the Jacobi scaling); the LU fallback for an
+    # indefinite H (an unstable equilibrium) pivots, so it gets the scaled system.
+    rhs = -take(g, act)[..., None]
+    L, info = torch.linalg.cholesky_ex(compact(H, act))
+    sol = torch.cholesky_solve(rhs, L)
+    indefinite = (info != 0).nonzero().flatten()
+    if indefinite.numel():
+        _, scale = scaled_residual(g[indefinite], H[indefinite],
+                                   torch.ones_like(g[indefinite, 0]))
+        a = None if act is None else act[indefinite]
+        Hs, sc = compact_scaled(H[indefinite], scale, a)
+        sol_lu, info_lu = torch.linalg.solve_ex(Hs, sc[..., None] * rhs[indefinite])
+        sol[indefinite], info[indefinite] = sc[..., None] * sol_lu, info_lu
+    q1 = q + expand(sol[..., 0], act, q.shape[-1]) * qmask
+    ok = (info == 0) & torch.isfinite(q1).all(-1)
+    return torch.where(ok[:, None], q1, q), ok
+
+
+# A section this short (x the longest tube) counts as vanishing for new_section_step.
+_VANISHING = 1e-5
+
+
+def new_section_step(q: torch.Tensor, prob: Problem, new: torch.Tensor,
+                     length: float) -> tuple[torch.Tensor, torch.Tensor]:
+    """The coordinates ``new (B, nq)`` (bool), those of a section of vanishing length ``h`` that
+    appears at a one-sided equilibrium, solved for with the others held: one Newton step on
+    their block of the elastic energy (:func:`torchpvs.mechanics.section_grad_block`). Held
+    coordinates are off by ``O(h)`` (the new section's pull on the rest), and the block's terms
+    through the angle bases are ``O(h)`` of it, so the result is ``O(h)`` accurate, like the
+    one-sided forces evaluated there, at the cost of a gradient, not a Hessian and its
+    factorization. Unloaded problems only (a tip load's work moves with the section's strains
+    at the same order). Returns the coordinates and the rows where it applied (new coordinates
+    in one compact section, no guide twist among them, the section shorter than
+    ``_VANISHING x length``, its block positive definite); other rows are returned unchanged."""
+    maps = prob.maps
+    cidx = maps["cidx"]
+    B, nq = q.shape
+    N = maps["bvec"].shape[2]
+    S = maps["h"].shape[1]
+    qc = compact_q(q, cidx)
+    cn = (qc.shape[-1] - N) // S
+    newc = torch.gather(new, 1, cidx)
+    has = newc[:, N:].reshape(B, S, cn).any(-1)                           # (B, S)
+    sec = has.to(torch.int8).argmax(-1)
+    rows = torch.arange(B, device=q.device)
+    g, blk = section_grad_block(qc, maps, sec)
+    m = newc[:, N:].reshape(B, S, cn)[rows, sec].to(q.dtype)            # (B, C n)
+    gs = g[:, N:].reshape(B, S, cn)[rows, sec] * m
+    A = blk * m[:, :, None] * m[:, None, :] + torch.diag_embed(1.0 - m)
+    L, info = torch.linalg.cholesky_ex(A)
+    d = -torch.cholesky_solve(gs[..., None], L)[..., 0] * m
+    ok = ((has.sum(-1) == 1) & ~newc[:, :N].any(-1) & (info == 0) & torch.isfinite(d).all(-1)
+          & (maps["h"][rows, sec] <= _VANISHING * length))
+    X = qc[:, N:].reshape(B, S, cn)
+    X[rows, sec] = X[rows, sec] + d
+    q1 = expand_q(torch.cat([qc[:, :N], X.reshape(B, -1)], -1), cidx, nq)
+    return torch.where(ok[:, None], q1, q), ok
+
+
+def default_guess(lay, maps: dict, tab: dict, disc: Discretization, N: int) -> torch.Tensor:
+    """Torsionless guess: tubes keep their base angles, the backbone bends with the
+    stiffness-weighted average of the rotated precurvatures (exact without torsion, eq. 31).
+    Built on the kernel's compact sections (``maps``, :func:`torchpvs.mechanics.build_maps`):
+    only they carry coordinates; the tube angles there are the base angles plus the twist of
+    the prescribed sections before them."""
+    B = lay.h.shape[0]
+    nq = n_coordinates(N, disc.n_basis)
+    cidx = maps["cidx"]
+    S = maps["h"].shape[1]
+    n = disc.n_basis
+    start = start_angles(lay.psi0, maps["presc_inc"])                 # (B, S_full, N), q = 0
+    sec = torch.div(cidx[:, N::(2 + N) * n] - N, (2 + N) * n, rounding_mode="floor")
+    psi = torch.gather(start, 1, sec[:, :, None].expand(B, S, N))[:, :, None, :]
+    us = maps["ustar"]                                                # (B, S, Q, N, 3)
+    cs, sn = torch.cos(psi), torch.sin(psi)
+    Rx = cs * us[..., 0] - sn * us[..., 1]
+    Ry = sn * us[..., 0] + cs * us[..., 1]
+    # stiffness-weighted (present tubes): EIw / EIws, the node weights cancel. Padded compact
+    # sections have EIws = 0: the clamp must be representable in the dtype (1e-300 is 0 in
+    # float32, and 0 / 0 made the whole guess NaN).
+    wgt = maps["EIw"] / maps["EIws"][..., None].clamp(min=torch.finfo(maps["EIws"].dtype).tiny)
+    u_avg = torch.stack([sum_dim(wgt * Rx, -1), sum_dim(wgt * Ry, -1)], -1)   # (B, S, Q, 2)
+    a = 0.5 * torch.einsum("bsgd,gp,g->bsdp", u_avg, tab["phi_q"], tab["wq"])
+    X = torch.zeros(B, S, 2 + N, n, dtype=a.dtype, device=a.device)
+    X[:, :, :2, :] = a
+    qc = torch.cat([torch.zeros(B, N, dtype=a.dtype, device=a.device), X.reshape(B, -1)], -1)
+    return expand_q(qc, cidx, nq)
+
+
+#: The reference kernel: batched eager torch on any device.
+EAGER = Kernel(guess=default_guess, solve=newton, step=newton_step,
+               section_step=new_section_step, pose=tip_pose, spd_solve=spd_solve)
+
+#: Kernels by name (``SolverOptions.kernel``).
+KERNELS: dict[str, Kernel] = {"newton": EAGER}
