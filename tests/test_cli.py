@@ -375,7 +375,7 @@ def test_plot_writes_png(capsys, fakes, tmp_path, torch_backbone):
 
 
 def test_plot_says_which_folder_it_created(capsys, fakes, tmp_path):
-    """Issue 27, item 12: `plot -o` into a missing folder created it silently. It is documented
+    """Regression: `plot -o` into a missing folder created it silently. It is documented
     (--help) and said: the message names the topmost folder created; none when it existed."""
     target = tmp_path / "new" / "deeper" / "fig.png"
     code, out, err = run(capsys, "plot", "renda2021_fig3", "-o", str(target))
@@ -542,7 +542,7 @@ def test_plot_backbone_artists():
 
 
 # ---------------------------------------------------------------------------------------------
-# Issue 14, items 5 and 11: internal exceptions and noise on the command line
+# Regression: internal exceptions and noise on the command line
 
 BIG = "9" * 400
 

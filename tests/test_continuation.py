@@ -128,7 +128,7 @@ def test_callable_path_and_errors(scene3b):
 
 @pytest.mark.parametrize("order", [2, 3, 4])
 def test_steep_stretch_before_a_fold_is_not_a_fold(scene3b, order):
-    """Issue 27, item 9: at order 2 the stretch just before the section III-B fold (the tip
+    """Regression: at order 2 the stretch just before the section III-B fold (the tip
     speed grows like 1 / sqrt(alpha_fold - alpha)) was reported as two extra folds, at 192.049
     and 192.229 deg with 0.3 and 1.0 mm "jumps", besides the snap at 192.251 deg (151.5 mm).
     Reference: the fold and hysteresis tests above (orders >= 3, one snap of tens of mm just

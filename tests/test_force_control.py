@@ -1,6 +1,6 @@
 """Force-controlled equilibria (torchpvs.force_control) against independent references:
 position solves (round trip x* -> tau(x*) -> x), a bisection on position solves for a commanded
-torque, and the range of the elastic torque over a full turn. Issue 4, item 5."""
+torque, and the range of the elastic torque over a full turn."""
 
 from __future__ import annotations
 
@@ -140,7 +140,7 @@ F32 = tp.SolverOptions(dtype=torch.float32)
 
 
 def test_float32_torque_control_converges_at_the_dtype_floor():
-    """Issue 27, item 5: in float32, torques=[nan, 0.01] reached 0.00999997 N·m (residual
+    """Regression: in float32, torques=[nan, 0.01] reached 0.00999997 N·m (residual
     3.4e-8 N·m, float32's rounding of tau) but reported converged=False, "beyond the largest
     elastic resistance", against the float64 default torque_tol = 1e-10. The thresholds now
     follow the dtype. Reference: the float64 solve of the same command (its alpha_2)."""

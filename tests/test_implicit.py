@@ -85,7 +85,7 @@ def test_no_graph_without_requires_grad():
 
 
 def test_non_finite_stiffness_warns_instead_of_raising():
-    """Issue 27, item 2: an element whose stiffness is not finite (a solve that overflowed, as
+    """Regression: an element whose stiffness is not finite (a solve that overflowed, as
     float32 inverse kinematics produced) made the singularity check's eigh raise LinAlgError
     and lost every element's gradient. Now it is named in a warning, its gradient is NaN and
     the other elements' gradients equal a solve without it (reference: that solve)."""

@@ -82,7 +82,7 @@ GOAL_A = [0.03, 0.02, 0.09]
 
 
 def test_a_goal_gets_the_same_answer_wherever_it_sits_in_the_batch():
-    """Issue 27, item 3: the random starts were drawn per batch, so goal A alone, as both rows
+    """Regression: the random starts were drawn per batch, so goal A alone, as both rows
     of [A, A] and as row 1 of [U, A] (U unreachable) got travels 0.152, 0.127 / 0.256 and
     0.256. Reference: the solo answer; every copy must equal it exactly."""
     solo = tp.inverse_kinematics(SC, GOAL_A)
@@ -104,7 +104,7 @@ def test_a_goal_gets_the_same_answer_wherever_it_sits_in_the_batch():
 
 @pytest.mark.parametrize("goal", [GOAL_A, [0.04, 0.01, 0.08]])
 def test_float32_solves_reach_the_goal(goal):
-    """Issue 27, item 2: with SolverOptions(dtype=float32) these goals raised LinAlgError from
+    """Regression: with SolverOptions(dtype=float32) these goals raised LinAlgError from
     the implicit backward (eigh on NaN stiffnesses): the cold start of a batch element with
     fewer sections than the others was NaN (a 1e-300 clamp is 0 in float32). Reference: an
     independent float64 solve at the returned actuation."""

@@ -2,7 +2,7 @@
 
 Reference: a fresh ``CTR`` built with the edited property (no cache to go stale), and
 ``torchpvs.solve`` on the scene with that property changed (its own plan, keyed on
-``scene.tubes``). Issue 27, item 1: the plan used to be keyed on ``id(tensor)`` and the version
+``scene.tubes``). Regression: the plan used to be keyed on ``id(tensor)`` and the version
 counter, so a reassigned tensor that reused a freed id, or a write through ``.data`` (which does
 not bump the version), returned the equilibrium of the old properties.
 """

@@ -633,7 +633,7 @@ def test_random_broken_nesting_or_ordering_raises(data, draw):
 
 
 # ---------------------------------------------------------------------------------------------
-# Issue 14, items 5, 8, 11: inputs that used to escape as internal exceptions or were silently
+# Regression: inputs that used to escape as internal exceptions or were silently
 # reinterpreted. Each is an error naming the field (or the file) and the rule.
 
 @settings(max_examples=40, deadline=None)

@@ -93,7 +93,7 @@ def test_three_carriages_in_a_chain_share_the_net_force():
 
 
 def test_the_issue_scenario_now_advances():
-    """Issue 13: at the nesting stop, outer pulling back at 1.96 N and inner pushing in at
+    """Regression: at the nesting stop, outer pulling back at 1.96 N and inner pushing in at
     4.51 N (net of the elastic load) retracted the pair 10 mm in 1 s (the outer carriage won).
     Now the pair inserts at the net 2.55 N over the summed damping: 6.05 mm in 1 s."""
     robot = fig3_two_tube()

@@ -1,4 +1,4 @@
-"""Issue 14, items 8, 9, 11 in the environments: bad actions and options raise (naming the
+"""Regressions in the environments: bad actions and options raise (naming the
 field and the rule) instead of being silently fixed; a one-tube robot; Gymnasium's render API;
 the energy acceptance of the overdamped carriage step."""
 
@@ -279,7 +279,7 @@ def test_the_energy_test_adds_no_solves_where_the_first_step_is_accepted():
 
 
 # ---------------------------------------------------------------------------------------------
-# Issue 27, item 8: the ids fix the control, unknown robots list the env robots, step before
+# Regression: the ids fix the control, unknown robots list the env robots, step before
 # reset says "call reset() first", reset options: a validated user goal, unknown keys refused
 
 FORCE_ID, JOINT_ID = "torchpvs/CTRReachForce-v0", "torchpvs/CTRReachJoint-v0"

@@ -126,7 +126,7 @@ def _assert_same_infos(a: dict, b: dict, where: str) -> None:
 
 @pytest.mark.parametrize("env_id", list(envs.ENV_IDS))
 def test_matches_sync_vector_env_of_the_single_env(env_id):
-    """Issue 27 item 6: ``vector_entry_point`` and ``SyncVectorEnv`` of the single env (same
+    """Regression: ``vector_entry_point`` and ``SyncVectorEnv`` of the single env (same
     SAME_STEP autoreset) give the same infos (keys, ``_key`` masks, dtypes, ``final_obs`` and a
     ``final_info`` dict of arrays), the same autoreset steps and the same episodes for the same
     seed, also when the robots' episodes end at different steps (a ``reset_mask`` reset of

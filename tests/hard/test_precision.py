@@ -88,7 +88,7 @@ def test_extreme_scenes(case):
 
 
 def test_float32_batch_with_different_section_counts():
-    """Issue 27, item 2: in float32, a batch whose elements have different numbers of active
+    """Regression: in float32, a batch whose elements have different numbers of active
     sections ((0.10, 0.20) beside (0.05, 0.15) and (0, 0.1) on the Fig. 3 robot) started the
     element with fewer sections from NaN (the default guess divided 0 by a 1e-300 clamp, which
     is 0 in float32) and reported it unconverged after 0 iterations. Reference: each element

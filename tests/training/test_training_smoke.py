@@ -330,8 +330,8 @@ def test_rl_zoo3_residual_on_plan_then_servo(tmp_path):
 
 def test_two_zoo_sweep_workers_started_at_once_share_one_new_optuna_study(tmp_path):
     """The documented sweep: two rl_zoo3 -optimize runs with the same --storage URL and
-    --study-name (as workers on two machines would) add their trials to ONE study. Issue 27
-    item 11: started AT ONCE on a new SQLite file, the zoo's own create_study raced
+    --study-name (as workers on two machines would) add their trials to ONE study.
+    Started AT ONCE on a new SQLite file, the zoo's own create_study raced
     (optuna#4621: IntegrityError on alembic_version, or "table studies already exists");
     each worker's documented command now creates the study first (training.study)."""
     import subprocess
