@@ -3,9 +3,8 @@
 from __future__ import annotations
 
 import math
-from collections.abc import Callable
 from dataclasses import dataclass, field, fields, replace
-from typing import TYPE_CHECKING, Any
+from typing import TYPE_CHECKING, Any, Protocol
 
 import torch
 
@@ -67,6 +66,22 @@ def _wrap(angle: torch.Tensor) -> torch.Tensor:
     return math.pi - torch.remainder(math.pi - angle, 2 * math.pi)
 
 
+class Resolver(Protocol):
+    """The solves an :class:`Equilibrium` calls back into, near its own solution. The solver
+    gives one (:class:`torchpvs.solver.SolutionResolver`), so that this module and
+    :mod:`torchpvs.forces` never import the driver."""
+
+    def near(self, insertion: torch.Tensor, rows: torch.Tensor) -> dict:
+        """The equilibria at insertions ``insertion (k, N)`` [m] of batch rows ``rows (k,)``,
+        a distance ~1e-7 m from the solution (the one-sided forces at kinks): a state dict
+        with ``q``, ``lay``, ``D``, ``alpha``, ``F``, ``M``, ``loaded``."""
+        ...
+
+    def again(self, options: SolverOptions, initial: Any = None) -> Equilibrium:
+        """The same robot, actuation and load solved with other ``options``."""
+        ...
+
+
 @dataclass(frozen=True, eq=False)
 class SolveContext:
     """What an :class:`Equilibrium`'s solve used, which its methods (backbone, Jacobians,
@@ -89,9 +104,8 @@ class SolveContext:
             cached on first use).
         options: the ``SolverOptions`` of the solve.
         plan: the robot plan it reused (:class:`~torchpvs.plan.Plan`) or ``None``.
-        solve_again: ``solve_again(options, initial) -> Equilibrium``, the same inputs solved
-            with other options (see :meth:`Equilibrium.solve_again`); ``None`` where the
-            solver gave none.
+        resolver: the re-solves near this solution (:class:`Resolver`, given by the solver;
+            see :meth:`Equilibrium.solve_again`), or ``None``.
     """
 
     scene: Scene
@@ -106,7 +120,7 @@ class SolveContext:
     implicit: ImplicitContext
     options: SolverOptions
     plan: Plan | None = None
-    solve_again: Callable[..., Equilibrium] | None = None
+    resolver: Resolver | None = None
 
     @property
     def actuation_and_load(self) -> tuple[torch.Tensor, ...]:
@@ -213,10 +227,10 @@ class Equilibrium:
         ``initial``, e.g. this equilibrium; cold when ``None``): how
         :func:`torchpvs.jacobians.control_jacobians` gets the load coordinates of an unloaded
         solve."""
-        if self.context is None or self.context.solve_again is None:
+        if self.context is None or self.context.resolver is None:
             raise ValueError("Equilibrium.solve_again: this equilibrium carries no solve to "
                              "repeat")
-        return self.context.solve_again(options, initial)
+        return self.context.resolver.again(options, initial)
 
     def released(self) -> Equilibrium:
         """This equilibrium with every inference-mode tensor (its fields and its context)
@@ -242,14 +256,11 @@ class Equilibrium:
     # ------------------------------------------------------------------------------------------
     @classmethod
     def from_solution(cls, scene, tubes, res, opts, elapsed: float,
-                      diff: dict | None = None, plan=None, resolve=None,
-                      resolve_all=None) -> Equilibrium:
+                      diff: dict | None = None, plan=None,
+                      resolver: Resolver | None = None) -> Equilibrium:
         """The solver's constructor: outputs of a converged solve ``res``. Re-solves are
-        handed in by the solver, so that this module never imports it: ``resolve(D, rows) ->
-        state`` (a solution dict with ``q``, ``lay``, ``D``, ``alpha``, ``F``, ``M``,
-        ``loaded``) at insertions ``D`` for batch rows ``rows``, near this equilibrium (the
-        one-sided forces at kinks), and ``resolve_all(options, initial) -> Equilibrium`` for
-        the same inputs with other options (kept as ``context.solve_again``)."""
+        handed in by the solver as a :class:`Resolver`, so that this module never imports
+        it (kept as ``context.resolver``)."""
         q, lay, tab = res["q"], res["lay"], res["tab"]
         B = q.shape[0]
         qmask = lay.qmask
@@ -291,7 +302,7 @@ class Equilibrium:
         elif opts.compute_forces:
             cache = None if plan is None else (
                 lambda name, compute: plan.cached(res["disc"], lay, name, compute))
-            forces, torques, insert_side, kink = equilibrium_forces(tubes, res, resolve,
+            forces, torques, insert_side, kink = equilibrium_forces(tubes, res, resolver.near,
                                                                     cache=cache)
         conv = res["converged"]
         # A verdict needs an equilibrium: where the solve did not converge, the state is not
@@ -306,7 +317,7 @@ class Equilibrium:
                            discretization=res["disc"], insertion=res["D"],
                            rotation=res["alpha"], tip_force=res["F"], tip_moment=res["M"],
                            implicit=res["implicit_info"], options=opts, plan=plan,
-                           solve_again=resolve_all)
+                           resolver=resolver)
         tip, R = res["tip"], res["R"]
         if diff is not None:  # differentiable versions of the same values (implicit backward)
             q, tip, R, energy = diff["q"], diff["tip"], diff["R"], diff["energy"]

@@ -52,6 +52,7 @@ from dataclasses import dataclass, replace
 import torch
 
 from .equilibrium import Equilibrium
+from .inputs import batch_inputs, check_float_dtypes
 from .jacobians import actuator_stiffness, control_jacobians
 from .options import SolverError, SolverOptions, check_time_limit, within_deadline
 from .scene import Scene, load_scene
@@ -219,23 +220,15 @@ def solve_force_controlled(
     cmd_f = _commands(forces, N, "forces", dtype, device)
     cmd_t = _commands(torques, N, "torques", dtype, device)
 
-    def batch(x, n, name, default):
-        t = torch.as_tensor(default if x is None else x, dtype=dtype, device=device)
-        t = t[None] if t.ndim == 1 else t
-        if t.ndim != 2 or t.shape[-1] != n:
-            raise ValueError(f"{name} must have shape ({n},) or (B, {n}), got {tuple(t.shape)}")
-        if not bool(torch.isfinite(t).all()):
-            raise ValueError(f"{name} must be finite")
-        return t
-
-    D0 = batch(insertion, N, "insertion", scene.actuation.insertion)
-    A0 = batch(rotation, N, "rotation", scene.actuation.rotation)
-    F = batch(tip_force, 3, "tip_force", scene.load.tip_force)
-    M = batch(tip_moment, 3, "tip_moment", scene.load.tip_moment)
-    parts = {"forces": cmd_f, "torques": cmd_t, "insertion": D0, "rotation": A0,
-             "tip_force": F, "tip_moment": M}
-    B = max(t.shape[0] for t in parts.values())
-    for nm, t in parts.items():
+    check_float_dtypes(insertion=insertion, rotation=rotation, tip_force=tip_force,
+                       tip_moment=tip_moment)
+    D0, A0, F, M = batch_inputs(
+        scene, scene.actuation.insertion if insertion is None else insertion,
+        scene.actuation.rotation if rotation is None else rotation,
+        scene.load.tip_force if tip_force is None else tip_force,
+        scene.load.tip_moment if tip_moment is None else tip_moment, dtype, device)
+    B = max(D0.shape[0], cmd_f.shape[0], cmd_t.shape[0])
+    for nm, t in (("forces", cmd_f), ("torques", cmd_t), ("insertion", D0)):
         if t.shape[0] not in (1, B):
             raise ValueError(f"{nm} has batch size {t.shape[0]}, expected 1 or {B}")
     cmd = torch.cat([cmd_f.expand(B, N), cmd_t.expand(B, N)], -1).clone()

@@ -13,6 +13,7 @@ from __future__ import annotations
 import math
 import time
 import warnings
+from dataclasses import dataclass
 
 import torch
 
@@ -85,7 +86,6 @@ def solve_tensors(scene: Scene, tubes: TubeTensors, D, A, F, M, opts: SolverOpti
     one-off plan when ``None``)."""
     B = D.shape[0]
     t0 = time.perf_counter()
-    kernel = KERNELS[opts.kernel]
     plan = plan if plan is not None else Plan(tubes)
     needs_grad = torch.is_grad_enabled() and any(
         t.requires_grad for t in (D, A, F, M, *tubes.tensors()))
@@ -156,45 +156,9 @@ def solve_tensors(scene: Scene, tubes: TubeTensors, D, A, F, M, opts: SolverOpti
         diff = differentiable_outputs(res["q"], info, D_in, A_in, F_in, M_in, tubes_in)
     elapsed = time.perf_counter() - t0
 
-    def resolve(Dn, sel):
-        # Forces at equilibria a distance delta ~ 1e-7 m away (insertions Dn, rows sel of the
-        # batch). Where the section structure there equals this one (same active coordinates),
-        # q* moves by O(delta) and dU*/dD = dU/dD at fixed q to O(delta) (envelope theorem):
-        # no solve. Where a section of length delta appears, its coordinates are solved for
-        # with the others held (_new_section_step: O(delta), like the rest), or where that does
-        # not apply (a tip load, a guide twist appearing), by ONE Newton step from q.
-        An, Fn, Mn, q0 = A[sel], F[sel], M[sel], res["q"][sel]
-        disc = res["disc"]
-        nq = q0.shape[-1]
-        loaded = loaded_rows(Fn, Mn, opts)
-        lay, maps = plan.layout(tube_rows(tubes, sel), Dn, An, Fn, Mn, loaded, disc, nq)
-        q1 = q0 * lay.qmask
-        moved = (lay.qmask != res["lay"].qmask[sel]).any(-1).nonzero().flatten()
-        if moved.numel():
-            first, k = int(moved[0]), moved.numel()
-            if int(moved[-1]) - first + 1 == k:      # usually one run of rows: views, no copy
-                moved = slice(first, first + k)
-            prob = Problem(lay, res["tab"], maps, res["with_load"],
-                           res["has_moment"]).subset(moved)
-            q1 = q1.clone()
-            qm, ok = q1[moved], torch.zeros(q1[moved].shape[0], dtype=torch.bool,
-                                            device=q1.device)
-            if not res["with_load"]:
-                new = (lay.qmask[moved] > 0) & ~(res["lay"].qmask[sel][moved] > 0)
-                qm, ok = kernel.section_step(qm, prob, new, float(tubes.length.max()))
-            rest = (~ok).nonzero().flatten()
-            if rest.numel():
-                qm = qm.clone()
-                qm[rest] = kernel.step(qm[rest], prob.subset(rest))[0]
-            q1[moved] = qm
-        return {"q": q1, "D": Dn, "alpha": An, "F": Fn, "M": Mn, "loaded": loaded, "lay": lay}
-
-    def resolve_all(options, initial_):
-        return solve_tensors(scene, tubes, D, A, F, M, options, initial_, plan)
-
+    resolver = SolutionResolver(scene, tubes, D, A, F, M, res, opts, plan)
     with torch.inference_mode(not needs_grad):
-        eq = Equilibrium.from_solution(scene, tubes, res, opts, elapsed, diff, plan, resolve,
-                                       resolve_all)
+        eq = Equilibrium.from_solution(scene, tubes, res, opts, elapsed, diff, plan, resolver)
     if not needs_grad:
         eq = eq.released()
     if opts.order is None and opts.on_failure != "ignore":
@@ -270,3 +234,62 @@ def _load_ramp(scene, tubes, D, A, F, M, res, opts: SolverOptions, plan: Plan, q
             res["maps"]["cidx"][keep])
         res["Hc"] = merged
     return res
+
+
+@dataclass(frozen=True, eq=False)
+class SolutionResolver:
+    """The re-solves near one solve's solution (:class:`torchpvs.equilibrium.Resolver`): what
+    the one-sided forces and :meth:`Equilibrium.solve_again` call back into. ``res`` is the
+    solve's state (its ``q``, layout, tables, discretization and load flags)."""
+
+    scene: Scene
+    tubes: TubeTensors
+    D: torch.Tensor
+    A: torch.Tensor
+    F: torch.Tensor
+    M: torch.Tensor
+    res: dict
+    options: SolverOptions
+    plan: Plan
+
+    def near(self, Dn: torch.Tensor, sel: torch.Tensor) -> dict:
+        """See :meth:`torchpvs.equilibrium.Resolver.near`."""
+        # Forces at equilibria a distance delta ~ 1e-7 m away (insertions Dn, rows sel of the
+        # batch). Where the section structure there equals this one (same active
+        # coordinates), q* moves by O(delta) and dU*/dD = dU/dD at fixed q to O(delta)
+        # (envelope theorem): no solve. Where a section of length delta appears, its
+        # coordinates are solved for with the others held (the kernel's section_step:
+        # O(delta), like the rest), or where that does not apply (a tip load, a guide twist
+        # appearing), by ONE Newton step from q.
+        res, opts, tubes = self.res, self.options, self.tubes
+        kernel = KERNELS[opts.kernel]
+        An, Fn, Mn, q0 = self.A[sel], self.F[sel], self.M[sel], res["q"][sel]
+        disc = res["disc"]
+        nq = q0.shape[-1]
+        loaded = loaded_rows(Fn, Mn, opts)
+        lay, maps = self.plan.layout(tube_rows(tubes, sel), Dn, An, Fn, Mn, loaded, disc, nq)
+        q1 = q0 * lay.qmask
+        moved = (lay.qmask != res["lay"].qmask[sel]).any(-1).nonzero().flatten()
+        if moved.numel():
+            first, k = int(moved[0]), moved.numel()
+            if int(moved[-1]) - first + 1 == k:      # usually one run of rows: views, no copy
+                moved = slice(first, first + k)
+            prob = Problem(lay, res["tab"], maps, res["with_load"],
+                           res["has_moment"]).subset(moved)
+            q1 = q1.clone()
+            qm, ok = q1[moved], torch.zeros(q1[moved].shape[0], dtype=torch.bool,
+                                            device=q1.device)
+            if not res["with_load"]:
+                new = (lay.qmask[moved] > 0) & ~(res["lay"].qmask[sel][moved] > 0)
+                qm, ok = kernel.section_step(qm, prob, new, float(tubes.length.max()))
+            rest = (~ok).nonzero().flatten()
+            if rest.numel():
+                qm = qm.clone()
+                qm[rest] = kernel.step(qm[rest], prob.subset(rest))[0]
+            q1[moved] = qm
+        return {"q": q1, "D": Dn, "alpha": An, "F": Fn, "M": Mn, "loaded": loaded, "lay": lay}
+
+    def again(self, options: SolverOptions, initial=None) -> Equilibrium:
+        """See :meth:`torchpvs.equilibrium.Resolver.again`."""
+        return solve_tensors(self.scene, self.tubes, self.D, self.A, self.F, self.M, options,
+                             initial, self.plan)
