@@ -55,13 +55,15 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import torch
 
 from torchpvs.jacobians import actuator_stiffness
 
-from .robots import Robot, solve_batch
+from .plant import Plants, PlantVariation
+from .robots import Robot
 
 __all__ = ["CarriageModel", "RobotBatch"]
 
@@ -179,12 +181,32 @@ def project_in_metric(xu: np.ndarray, A: np.ndarray, G: np.ndarray, c: np.ndarra
     return np.array(xu, dtype=np.float64, copy=True), np.zeros(len(c)), False
 
 
+class _Solved(NamedTuple):
+    """What a substep reads of a batched solve, as numpy arrays (float64, ``(k, ...)``): the
+    one place where the solver's tensors become the batch's state."""
+
+    g: np.ndarray          # (k, 2N) [N, N·m] dU*/dx
+    tip: np.ndarray        # (k, 3) [m]
+    margin: np.ndarray     # (k,)
+    twist: np.ndarray      # (k, N-1) [rad] relative rotations at the outer tube's tip
+    energy: np.ndarray     # (k,) [J]
+    q: np.ndarray          # (k, nq) solver coordinates (the next warm start)
+    ok: np.ndarray         # (k,) converged with finite forces and tip
+
+
 class RobotBatch:
-    """State and stepping of ``B`` robots (numpy state, one batched torch solve per substep).
+    """State and stepping of ``B`` robots: numpy state throughout, one batched torch solve
+    per substep (actuations in, :class:`_Solved` arrays out).
 
     State arrays (float64): ``x (B, 2N)``, ``v (B, 2N)``, ``g (B, 2N)`` [N, N·m],
     ``tip (B, 3)`` [m] in the base frame, ``margin (B,)`` (smallest scaled stiffness
-    eigenvalue), ``at_lower``/``at_upper (B, N)`` stroke-limit flags.
+    eigenvalue), ``at_lower``/``at_upper (B, N)`` stroke-limit flags, ``q (B, nq)`` the
+    solver coordinates of the last equilibrium (the warm start of the next solve).
+
+    The batch owns its solves (:class:`envs.plant.Plants`, the nominal robot's when ``plants``
+    is ``None``): the robot's plan is looked up once, and the actuations it solves at are ones
+    it produced (projected onto the feasible set from validated actions), so they are not
+    re-checked per substep; :meth:`set_state` checks the states it is given.
     """
 
     def __init__(self, robot: Robot, model: CarriageModel, batch_size: int, plants=None):
@@ -192,9 +214,10 @@ class RobotBatch:
                 or batch_size < 1:
             raise ValueError(f"batch_size must be an integer >= 1, got {batch_size!r}")
         self.robot, self.model, self.B = robot, model, batch_size
-        # the robots' plants (envs.plant.Plants): per-robot tubes and tip loads, or None for
-        # the nominal robot
-        self.plants = plants
+        # the robots' plants (envs.plant.Plants): per-robot tubes and tip loads; the nominal
+        # robot's without them
+        self.plants = plants if plants is not None else Plants(robot, PlantVariation(),
+                                                               batch_size)
         N = robot.n_tubes
         self.N = N
         self.damping = np.concatenate([
@@ -218,47 +241,54 @@ class RobotBatch:
         self.twist = np.zeros((batch_size, max(N - 1, 0)))
         self.at_lower = np.zeros((batch_size, N), dtype=bool)
         self.at_upper = np.zeros((batch_size, N), dtype=bool)
-        self.q: torch.Tensor | None = None           # warm start, (B, nq)
+        self.q: np.ndarray | None = None             # warm start, (B, nq)
         self.solves = 0                              # batched solver calls (for benchmarks)
         G, self._c = robot.constraints()             # G D <= c on the insertions
         self._G = np.concatenate([G, np.zeros_like(G)], -1)    # (m, 2N): no rotation limits
         self.contact_fallbacks = 0                   # contact QPs that failed (clipped instead)
 
     # ------------------------------------------------------------------------------------------
-    def _solve(self, x: np.ndarray, q0: torch.Tensor | None, idx: np.ndarray):
-        """Equilibria of robots ``idx`` at ``x`` (their own plants when they have one)."""
+    def _solve(self, x: np.ndarray, q0: np.ndarray | None, idx: np.ndarray):
+        """Equilibria of robots ``idx`` at feasible, finite ``x`` (their own plants)."""
         self.solves += 1
-        if self.plants is not None:
-            return self.plants.solve(x, idx, initial=q0)
-        return solve_batch(self.robot, x, initial=q0)
+        return self.plants.solve(x, idx, initial=None if q0 is None else torch.from_numpy(q0))
 
     @staticmethod
-    def _unpack(eq):
+    def _unpack(eq) -> _Solved:
         g = torch.cat([eq.actuation_forces, eq.actuation_torques], -1).numpy()
-        ok = eq.converged.numpy() & np.isfinite(g).all(-1) & np.isfinite(
-            eq.tip_position.numpy()).all(-1)
-        return (g, eq.tip_position.numpy(), eq.min_stiffness_eigenvalue.numpy(),
-                eq.relative_rotation_at_outer_tip.numpy(), eq.energy.detach().numpy(), ok)
+        tip = eq.tip_position.numpy()
+        ok = eq.converged.numpy() & np.isfinite(g).all(-1) & np.isfinite(tip).all(-1)
+        return _Solved(g=g, tip=tip, margin=eq.min_stiffness_eigenvalue.numpy(),
+                       twist=eq.relative_rotation_at_outer_tip.numpy(),
+                       energy=eq.energy.detach().numpy(), q=eq.q.detach().numpy(), ok=ok)
 
     def set_state(self, idx: np.ndarray, x: np.ndarray, eq=None, rows=None) -> np.ndarray:
-        """Place robots ``idx`` at ``x (len(idx), 2N)`` at rest; solve unless ``eq`` (an
-        Equilibrium whose ``rows`` are these states) is given. Returns the converged mask."""
+        """Place robots ``idx`` at ``x (len(idx), 2N)`` at rest (insertions projected onto the
+        feasible set); solve unless ``eq`` (an Equilibrium whose ``rows`` are these states) is
+        given. Returns the converged mask. Raises ``ValueError`` for an ``x`` of another shape
+        or with non-finite entries."""
+        idx = np.asarray(idx, dtype=int)
+        x = np.asarray(x, dtype=np.float64)
+        if x.shape != (len(idx), 2 * self.N):
+            raise ValueError(f"x must have shape ({len(idx)}, {2 * self.N}) (one row of "
+                             f"insertions then rotations per robot of idx), got {x.shape}")
+        if not np.isfinite(x).all():
+            raise ValueError("x must be finite (insertions [m] and rotations [rad])")
         D, lo, hi = self.robot.project(x[:, :self.N])
         x = np.concatenate([D, x[:, self.N:]], -1)
         if eq is None:
             eq, rows = self._solve(x, None, idx), np.arange(len(idx))
-        g, tip, margin, twist, energy, ok = self._unpack(eq)
-        q = eq.q.detach()
-        if self.q is None or self.q.shape[-1] != q.shape[-1]:
-            self.q = torch.zeros(self.B, q.shape[-1], dtype=q.dtype)
+        s = self._unpack(eq)
+        if self.q is None or self.q.shape[-1] != s.q.shape[-1]:
+            self.q = np.zeros((self.B, s.q.shape[-1]), dtype=s.q.dtype)
         self.x[idx], self.v[idx] = x, 0.0
-        self.g[idx], self.tip[idx], self.margin[idx] = g[rows], tip[rows], margin[rows]
-        self.twist[idx], self.energy[idx] = twist[rows], energy[rows]
+        self.g[idx], self.tip[idx], self.margin[idx] = s.g[rows], s.tip[rows], s.margin[rows]
+        self.twist[idx], self.energy[idx] = s.twist[rows], s.energy[rows]
         self._parked[idx] = False
         self.at_lower[idx], self.at_upper[idx] = lo, hi
-        self.q[torch.as_tensor(idx)] = q[torch.as_tensor(rows)]
+        self.q[idx] = s.q[rows]
         self.K[idx] = self._stiffness_of(eq, rows)
-        return ok[rows]
+        return s.ok[rows]
 
     def compensation(self, direction: np.ndarray) -> np.ndarray:
         """The elastic load ``(B, 2N)`` [N, N·m] to hold against when commanding motion in
@@ -471,20 +501,21 @@ class RobotBatch:
                 first[todo] = x
                 if len(todo) == 0:
                     break
-            eq = self._solve(x, self.q[torch.as_tensor(todo)], todo)
-            g, tip, margin, twist, energy, converged = self._unpack(eq)
+            eq = self._solve(x, self.q[todo], todo)
+            s = self._unpack(eq)
+            converged = s.ok
             ok = converged.copy()
             if attempt == 0:
-                first_g[todo[converged]] = g[converged]
+                first_g[todo[converged]] = s.g[converged]
             if accept is not None and ok.any():
-                ok[ok] = accept(todo[ok], x[ok], energy[ok])
+                ok[ok] = accept(todo[ok], x[ok], s.energy[ok])
             good = np.flatnonzero(ok)
             idx = todo[good]
-            self.x[idx], self.v[idx], self.g[idx] = x[good], v[good], g[good]
-            self.tip[idx], self.margin[idx] = tip[good], margin[good]
-            self.twist[idx], self.energy[idx] = twist[good], energy[good]
+            self.x[idx], self.v[idx], self.g[idx] = x[good], v[good], s.g[good]
+            self.tip[idx], self.margin[idx] = s.tip[good], s.margin[good]
+            self.twist[idx], self.energy[idx] = s.twist[good], s.energy[good]
             self.at_lower[idx], self.at_upper[idx] = lo[good], hi[good]
-            self.q[torch.as_tensor(idx)] = eq.q.detach()[torch.as_tensor(good)]
+            self.q[idx] = s.q[good]
             self._parked[idx] = False
             self._impulse[idx] += impulse[good]
             if attempt == 0:

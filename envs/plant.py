@@ -25,7 +25,7 @@ from torchpvs.plan import tube_tensors
 from torchpvs.sections import TubeTensors
 from torchpvs.solver import solve_tensors
 
-from .robots import ENV_SOLVER_OPTIONS, Robot, solve_batch
+from .robots import ENV_SOLVER_OPTIONS, Robot, RobotSolver
 
 __all__ = ["PlantVariation", "Plants", "solve_robots"]
 
@@ -76,7 +76,9 @@ class Plants:
         N = robot.n_tubes
         self.factors = np.ones((batch_size, 3, N))
         self.tip_force = np.zeros((batch_size, 3))
-        self._base = tube_tensors(robot.scene, torch.float64, torch.device("cpu"))
+        # the nominal robot's solves and tube tensors, built once (the plan of its scene)
+        self._nominal = RobotSolver(robot)
+        self._base = self._nominal.plan.tubes
 
     def draw(self, idx: np.ndarray, rngs) -> None:
         """New plants for robots ``idx``, each from its own generator ``rngs[i]``."""
@@ -91,10 +93,11 @@ class Plants:
             self.tip_force[i] = rng.uniform(0, v.tip_force) * d / np.linalg.norm(d)
 
     def solve(self, x: np.ndarray, rows: np.ndarray, initial=None):
-        """Equilibria of robots ``rows`` at actuations ``x (len(rows), 2N)`` (one batched
-        solve; the nominal robot's fast path when there is no variation)."""
+        """Equilibria of robots ``rows`` at feasible, finite actuations ``x (len(rows), 2N)``
+        (one batched solve; the nominal robot's plan when there is no variation; the inputs
+        are not re-checked: the robot batch produced them)."""
         if self.variation.nominal:
-            return solve_batch(self.robot, x, initial=initial)
+            return self._nominal(x, initial=initial)
         rows = np.asarray(rows, dtype=int)
         with torch.no_grad():
             return solve_robots(self.robot, torch.as_tensor(np.asarray(x, np.float64)),

@@ -20,9 +20,11 @@ import torch
 
 import torchpvs
 from torchpvs import Actuation, Scene, Tube
+from torchpvs.plan import Plan, plan_for
+from torchpvs.solver import solve_tensors
 
 __all__ = ["Robot", "fig3_two_tube", "rvim_three_tube", "ROBOTS", "make_robot", "solve_batch",
-           "measure_force_scales", "ENV_SOLVER_OPTIONS"]
+           "RobotSolver", "measure_force_scales", "ENV_SOLVER_OPTIONS"]
 
 
 @dataclass(frozen=True)
@@ -254,6 +256,39 @@ def solve_batch(robot: Robot, x: np.ndarray, initial=None, options=None):
     xt = torch.as_tensor(x, dtype=torch.float64)
     return torchpvs.solve(robot.scene, insertion=xt[:, :N], rotation=xt[:, N:],
                           options=options or ENV_SOLVER_OPTIONS, initial=initial)
+
+
+class RobotSolver:
+    """The solves of one robot's batch, at actuations the batch itself produced.
+
+    :func:`solve_batch` (``torchpvs.solve``) looks the robot's :class:`~torchpvs.plan.Plan` up
+    by hashing ``scene.tubes`` and re-checks every input (shape, finiteness, nesting) on each
+    call; a robot batch solves once or more per substep at actuations it projected onto the
+    feasible set itself (:meth:`Robot.project`) from validated actions. This holds the plan
+    (the same object ``torchpvs.solve`` uses for the scene, looked up once) and the scene's load
+    as tensors, and calls the solve proper (``torchpvs.solver.solve_tensors``) with them: the
+    same computation as :func:`solve_batch`, bit for bit, without the per-call lookup and
+    checks. Callers validate what they did not produce (``RobotBatch.set_state`` checks its
+    ``x``)."""
+
+    def __init__(self, robot: Robot):
+        self.robot = robot
+        # float64 on the CPU, the energy force model: what solve_batch's solve runs with
+        # ENV_SOLVER_OPTIONS (no dtype, device or paper-model scope check to repeat)
+        self.plan: Plan = plan_for(robot.scene, torch.float64, torch.device("cpu"))
+        load = robot.scene.load
+        self._F = torch.tensor([load.tip_force], dtype=torch.float64)
+        self._M = torch.tensor([load.tip_moment], dtype=torch.float64)
+
+    def __call__(self, x: np.ndarray, initial=None):
+        """The equilibria at feasible, finite actuator coordinates ``x (B, 2N)``."""
+        N = self.robot.n_tubes
+        xt = torch.as_tensor(x, dtype=torch.float64)
+        k = xt.shape[0]
+        D, A = xt[:, :N].contiguous(), xt[:, N:].contiguous()
+        F, M = (t.expand(k, -1).contiguous() for t in (self._F, self._M))
+        return solve_tensors(self.robot.scene, self.plan.tubes, D, A, F, M, ENV_SOLVER_OPTIONS,
+                             initial, self.plan)
 
 
 # Fixed order 2 and 8 Magnus steps: tip errors below 1e-3 mm on the Fig. 3 sweeps (docs) at a

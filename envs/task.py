@@ -705,7 +705,7 @@ class ReachBatch:
     def state(self) -> RobotState:
         """The robots' state as a :class:`RobotState` of copies (``(B, ...)`` arrays)."""
         rb = self.robots
-        q = np.zeros((self.B, 0)) if rb.q is None else rb.q.detach().numpy()
+        q = np.zeros((self.B, 0)) if rb.q is None else rb.q
         return RobotState(x=rb.x.copy(), v=rb.v.copy(), g=rb.g.copy(),
                           tip=self.measured_tip.copy(), goal=self.goal.copy(),
                           margin=rb.margin.copy(), q=np.array(q, dtype=np.float64, copy=True),
