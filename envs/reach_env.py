@@ -69,7 +69,9 @@ class CTRReachEnv(gym.Env):
     ``contact_force (N-1,)`` the force of carriage ``j-1`` on carriage ``j`` along ``+D_j``
     (``> 0`` at the nesting stop ``D_j = D_{j-1}``, ``< 0`` at the tip-order stop, ``0`` apart)
     and ``stop_force (N,)`` the force of the stroke ends on each insertion carriage along
-    ``+D`` (``> 0`` at the lower end). Both are zero under joint control.
+    ``+D`` (``> 0`` at the lower end). Both are zero under joint control. The reward's parts
+    (:class:`~envs.task.RewardTerms`): ``reward_distance`` (the goal term above) and
+    ``reward_snap`` (``snap_penalty`` at a terminating snap, else 0); they sum to the reward.
     """
 
     metadata = {"render_modes": ["rgb_array", "human"], "render_fps": 10}

@@ -41,6 +41,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 from gymnasium import spaces
@@ -51,8 +52,8 @@ from .dynamics import CarriageModel, RobotBatch
 from .plant import Plants, PlantVariation
 from .robots import Robot
 
-__all__ = ["ReachConfig", "ReachBatch", "RobotState", "OBS_BOUND", "compute_reward",
-           "her_reward"]
+__all__ = ["ReachConfig", "ReachBatch", "RobotState", "RewardTerms", "OBS_BOUND",
+           "compute_reward", "reward_terms", "her_reward"]
 
 OBS_BOUND = 10.0
 
@@ -239,13 +240,27 @@ def _real(v) -> bool:
         v, (bool, np.bool_)) and math.isfinite(v)
 
 
-def compute_reward(achieved_goal, desired_goal, tolerance: float, kind: str,
-                   dense_scale: float, snapped=None, snap_penalty: float = 0.0) -> np.ndarray:
-    """Vectorized reward over the last axis -> ``(...,)`` float32.
+class RewardTerms(NamedTuple):
+    """The parts of a reward (:func:`reward_terms`), each ``(...,)`` float64; the reward is
+    ``(distance + snap).astype(float32)``. The step ``info`` reports them as
+    ``reward_distance`` and ``reward_snap``.
 
-    Goals are ``(..., 3)`` positions [m] or the environments' ``(..., 4)`` goals whose 4th
-    entry is the snap flag: the distance uses the positions, the penalty is added where the
-    achieved flag is set or ``snapped`` (e.g. from ``info``) is true."""
+    Attributes:
+        distance: the goal term: ``"sparse"`` ``-1`` outside the tolerance, ``0`` inside;
+            ``"dense"`` ``-d / dense_scale``, plus ``1`` inside (``d`` [m] the distance of the
+            goals' positions).
+        snap: ``snap_penalty`` where the snap flag is set (the achieved goal's 4th entry or
+            ``snapped``), else ``0``.
+    """
+
+    distance: np.ndarray
+    snap: np.ndarray
+
+
+def reward_terms(achieved_goal, desired_goal, tolerance: float, kind: str,
+                 dense_scale: float, snapped=None, snap_penalty: float = 0.0
+                 ) -> tuple[np.ndarray, RewardTerms]:
+    """:func:`compute_reward` and its parts: ``(reward (...,) float32, RewardTerms)``."""
     ag = np.asarray(achieved_goal, np.float64)
     dg = np.asarray(desired_goal, np.float64)
     d = np.linalg.norm(ag[..., :3] - dg[..., :3], axis=-1)
@@ -254,8 +269,20 @@ def compute_reward(achieved_goal, desired_goal, tolerance: float, kind: str,
     flag = ag[..., 3] > 0.5 if ag.shape[-1] == 4 else np.zeros(d.shape, dtype=bool)
     if snapped is not None:
         flag = flag | np.asarray(snapped, dtype=bool)
-    r = r + snap_penalty * flag
-    return r.astype(np.float32)
+    snap = snap_penalty * flag
+    return (r + snap).astype(np.float32), RewardTerms(distance=r, snap=snap)
+
+
+def compute_reward(achieved_goal, desired_goal, tolerance: float, kind: str,
+                   dense_scale: float, snapped=None, snap_penalty: float = 0.0) -> np.ndarray:
+    """Vectorized reward over the last axis -> ``(...,)`` float32.
+
+    Goals are ``(..., 3)`` positions [m] or the environments' ``(..., 4)`` goals whose 4th
+    entry is the snap flag: the distance uses the positions, the penalty is added where the
+    achieved flag is set or ``snapped`` (e.g. from ``info``) is true. Its parts:
+    :func:`reward_terms`."""
+    return reward_terms(achieved_goal, desired_goal, tolerance, kind, dense_scale, snapped,
+                        snap_penalty)[0]
 
 
 def info_field(info, key: str, shape) -> np.ndarray | None:
@@ -628,13 +655,8 @@ class ReachBatch:
         d = np.linalg.norm(self.robots.tip - self.goal, axis=-1)
         snap_term = snapped & (self.config.snap_mode == "terminate")
         self.snap_flag = snap_term.astype(np.float64)
-        # the reward from the float32 goals of the observation (the measured tip), the values
-        # compute_reward gets back from a replay buffer (float64 goals differ in the 8th digit)
         self._measure(np.arange(self.B))
-        reward = compute_reward(self.measured_tip.astype(np.float32),
-                                self.goal.astype(np.float32), self.tolerance,
-                                self.config.reward, self.config.dense_scale, snap_term,
-                                self.config.snap_penalty)
+        reward, terms = self._get_rew(snap_term)
         infos = {
             "is_success": self._goal_distance32() <= self.tolerance,
             "distance": d,
@@ -651,10 +673,21 @@ class ReachBatch:
             "at_limit": self.robots.at_lower.any(-1) | self.robots.at_upper.any(-1),
             "contact_force": flags["contact_force"],
             "stop_force": flags["stop_force"],
+            "reward_distance": terms.distance,
+            "reward_snap": terms.snap,
         }
         terminated = snap_term & ~failure
         truncated = failure
         return reward, terminated, truncated, infos
+
+    def _get_rew(self, snap_term: np.ndarray) -> tuple[np.ndarray, RewardTerms]:
+        """The step reward ``(B,)`` float32 and its :class:`RewardTerms`, from the float32
+        goals of the observation (the measured tip): the values ``compute_reward`` gets back
+        from a replay buffer (float64 goals differ in the 8th digit), with the penalty where
+        ``snap_term`` (a terminating snap this step)."""
+        c = self.config
+        return reward_terms(self.measured_tip.astype(np.float32), self.goal.astype(np.float32),
+                            self.tolerance, c.reward, c.dense_scale, snap_term, c.snap_penalty)
 
     # -- observations -------------------------------------------------------------------------
     def observations(self) -> dict[str, np.ndarray]:

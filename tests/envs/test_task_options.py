@@ -167,3 +167,25 @@ def test_dense_step_reward_is_compute_reward_of_the_observation_bit_for_bit(cont
             if term or trunc:
                 break
     assert n >= 10
+
+
+def test_info_carries_the_reward_terms_and_they_sum_to_the_reward():
+    """info["reward_distance"] + info["reward_snap"] is the step reward to the bit (dense
+    random steps), and a terminating snap puts snap_penalty into the snap term alone (the
+    snap of test_continue_mode_settles_on_the_new_branch_and_goes_on, in terminate mode)."""
+    env = CTRReachEnv(reward="dense")
+    env.reset(seed=0)
+    rng = np.random.default_rng(0)
+    for _ in range(5):
+        _, r, _, _, info = env.step(rng.uniform(-1, 1, 4).astype(np.float32))
+        assert r == np.float32(info["reward_distance"] + info["reward_snap"])
+        assert info["reward_snap"] == 0.0
+    env = CTRReachEnv(robot="rvim_three_tube", compensation=True)
+    env.reset(seed=2)
+    for _ in range(5):
+        _, r, term, _, info = env.step(np.array([0, 0, 0, -1, 1, 0], np.float32))
+        if term:
+            break
+    assert info["snap_terminated"]
+    assert info["reward_snap"] == env.config.snap_penalty and info["reward_distance"] == -1.0
+    assert r == np.float32(info["reward_distance"] + info["reward_snap"])
