@@ -32,7 +32,14 @@ __all__ = ["CTRReachVecEnv"]
 
 class CTRReachVecEnv(VecEnv):
     """``num_envs`` reaching robots in one process (see :class:`envs.reach_env.CTRReachEnv` for
-    the arguments; ``max_episode_steps`` is the time limit, default 100)."""
+    the arguments; ``max_episode_steps`` is the time limit, default 100).
+
+    Spaces, reward and ``info`` keys per robot are :class:`envs.reach_env.CTRReachEnv`'s (its
+    action, observation and reward tables, with units): ``action_space`` is the single robot's
+    ``Box(-1, 1, (2N,), float32)`` (SB3's convention), ``step`` takes ``(num_envs, 2N)`` finite
+    actions (``ValueError`` otherwise) and returns observations with a leading ``num_envs``
+    axis and a list of ``info`` dicts. Autoreset, seeding and options: the module docstring.
+    """
 
     def __init__(self, num_envs: int = 16, robot: str | Robot | Scene = "fig3_two_tube",
                  control: str = "force", carriage: CarriageModel | dict | None = None,

@@ -67,7 +67,15 @@ def build_batch(num_envs: int, robot: str | Robot | Scene, control: str,
 
 class CTRReachVectorEnv(gym.vector.VectorEnv):
     """``num_envs`` reaching robots in one process (arguments as :class:`envs.CTRReachEnv`;
-    ``max_episode_steps`` is the time limit, default 100)."""
+    ``max_episode_steps`` is the time limit, default 100).
+
+    Spaces, reward and ``info`` keys per robot are :class:`envs.CTRReachEnv`'s (its action,
+    observation and reward tables, with units), batched: ``single_action_space`` is
+    ``Box(-1, 1, (2N,), float32)`` and ``action_space`` ``(num_envs, 2N)``; the observation
+    dict's entries gain a leading ``num_envs`` axis. Actions must have shape
+    ``(num_envs, 2N)`` and be finite (``ValueError`` otherwise). Autoreset, infos, seeding and
+    reset options: the module docstring.
+    """
 
     metadata = {"autoreset_mode": AutoresetMode.SAME_STEP, "render_modes": ["rgb_array"],
                 "render_fps": 10}
