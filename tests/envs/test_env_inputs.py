@@ -1,6 +1,8 @@
 """Regressions in the environments: bad actions and options raise (naming the
 field and the rule) instead of being silently fixed; a one-tube robot; Gymnasium's render API;
-the energy acceptance of the overdamped carriage step."""
+the energy acceptance of the overdamped carriage step. The home of the environments' input
+checks (torchpvs's own are in ``tests/test_inputs.py``), property tests over the classes of bad
+action included."""
 
 from __future__ import annotations
 
@@ -10,9 +12,8 @@ import warnings
 import gymnasium as gym
 import numpy as np
 import pytest
-import torch
 from gymnasium.utils.env_checker import check_env as gym_check_env
-from hypothesis import given, settings
+from hypothesis import HealthCheck, given, settings
 from hypothesis import strategies as st
 
 import torchpvs
@@ -88,6 +89,36 @@ def test_vec_env_refuses_non_finite_actions(vec_env):
 def test_non_numeric_actions_raise(force_env, action):
     with pytest.raises(ValueError, match="action must be a real numeric array"):
         force_env.step(action)
+
+
+# Property tests over the classes of bad action, so that none of them comes back: an action of
+# any shape but the action space's, or with any non-finite entry, raises ValueError and leaves
+# the robot where it was
+
+PROPS = settings(max_examples=60, deadline=None, derandomize=True, database=None,
+                 suppress_health_check=[HealthCheck.function_scoped_fixture])
+
+
+@PROPS
+@given(shape=st.lists(st.integers(0, 4), max_size=3).map(tuple).filter(lambda s: s != (4,)))
+def test_actions_of_any_other_shape_raise(force_env, shape):
+    x0 = force_env.actuation
+    with pytest.raises(ValueError, match=r"action must have shape \(4,\)"):
+        force_env.step(np.zeros(shape, np.float32))
+    np.testing.assert_array_equal(force_env.actuation, x0)
+
+
+@PROPS
+@given(a=st.lists(st.floats(-2, 2), min_size=4, max_size=4),
+       bad=st.lists(st.sampled_from([math.nan, math.inf, -math.inf]), min_size=1, max_size=4),
+       where=st.permutations(range(4)))
+def test_actions_with_any_non_finite_entry_raise(force_env, a, bad, where):
+    x0 = force_env.actuation
+    a = np.array(a)
+    a[list(where[:len(bad)])] = bad
+    with pytest.raises(ValueError, match="action must be finite"):
+        force_env.step(a)
+    np.testing.assert_array_equal(force_env.actuation, x0)
 
 
 def test_valid_actions_still_work_and_saturate(force_env):
@@ -235,7 +266,6 @@ def _merit_rollout(seed: int, control_period: float, tau_frac, B: int = 4,
                    seconds: float = 1.5):
     """phi = U* - tau . x of B relaxing robots, ``(steps + 1, B)``, from a fresh solve at
     each committed state (independent of the stored energies), and the solver calls."""
-    torch.set_num_threads(1)
     robot = fig3_two_tube()
     rb = RobotBatch(robot, CarriageModel(control_period=control_period), B)
     rb.set_state(np.arange(B), robot.sample_actuation(np.random.default_rng(seed), B))
@@ -260,6 +290,7 @@ def _merit_rollout(seed: int, control_period: float, tau_frac, B: int = 4,
     (1, 0.1, [0.2, -0.1, 0.0, 0.3]),
     (7, 0.1, [-0.3, 0.3, 0.5, -0.5]),
 ])
+@pytest.mark.usefixtures("one_thread")
 def test_overdamped_step_never_raises_the_merit(seed, period, tau):
     """b xdot = tau - dU*/dx is the gradient flow of phi = U* - tau . x; with the Armijo
     sufficient-decrease test (L. Armijo, Pacific J. Math. 16(1), 1966; Nocedal & Wright,
@@ -271,6 +302,7 @@ def test_overdamped_step_never_raises_the_merit(seed, period, tau):
     assert (phi[-1] <= phi[0]).all() and (phi[-1] < phi[0] - 1e-6 * scale).any()
 
 
+@pytest.mark.usefixtures("one_thread")
 def test_the_energy_test_adds_no_solves_where_the_first_step_is_accepted():
     """A smooth stretch (no kink crossed): exactly one batched solve per substep."""
     phi, solves, substeps = _merit_rollout(2, 0.1, [0.05, 0.05, 0.0, 0.0], B=2, seconds=0.5)
