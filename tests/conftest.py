@@ -1,8 +1,9 @@
 """Test-session setup and what the test modules share.
 
 - a headless matplotlib backend and at most two torch threads for the session;
-- ``one_thread``: a fixture pinning torch to one thread for a test; the hard-case suite
-  (``tests/hard/``) runs every module under it;
+- ``one_thread``: a fixture pinning torch to one thread for a test, ``one_thread_module`` for a
+  module (both restore the previous count; no module sets and restores it by hand); the
+  hard-case suite (``tests/hard/``) runs every module under it;
 - ``E, G``: the nitinol moduli of the paper's Table I [Pa], and ``two_tubes``: a two-tube robot
   given overall tube lengths. Test modules import them with ``from conftest import E, G,
   two_tubes`` (this is the suite's only conftest.py, so the name is unambiguous).
@@ -48,6 +49,14 @@ if torch is not None:
         """One torch thread for the test (small batches spin-wait badly on two busy cores);
         the previous count is restored after. Use as ``pytestmark =
         pytest.mark.usefixtures("one_thread")`` or as an argument."""
+        with testing.one_thread():
+            yield
+
+    @pytest.fixture(scope="module")
+    def one_thread_module():
+        """One torch thread for a whole module, the previous count restored after it: use as
+        ``pytestmark = pytest.mark.usefixtures("one_thread_module")`` (module-scoped
+        fixtures that solve at set-up wrap their body in ``testing.one_thread()`` instead)."""
         with testing.one_thread():
             yield
 

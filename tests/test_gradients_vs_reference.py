@@ -64,12 +64,7 @@ def _with_modulus_step(scene, h):
     return dataclasses.replace(scene, tubes=tuple(tubes))
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_torch_thread():
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+pytestmark = pytest.mark.usefixtures("one_thread_module")
 
 
 def test_enough_smooth_scenes():

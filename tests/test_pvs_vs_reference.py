@@ -45,15 +45,10 @@ DEFAULT_NOFORCE = SolverOptions(compute_forces=False)
 N_RANDOM = 40                                            # seeded random scenes
 
 
-@pytest.fixture(autouse=True, scope="module")
-def _one_torch_thread():
-    """These solves are tiny (tens of coordinates): with two intra-op threads on a busy 2-core
-    machine torch's OpenMP spin-waiting made them up to ~60x slower (measured: 0.3 s -> 20-37 s for
-    15 order-6 solves while another process ran). One thread for this module, restored after."""
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(n)
+# These solves are tiny (tens of coordinates): with two intra-op threads on a busy 2-core
+# machine torch's OpenMP spin-waiting made them up to ~60x slower (measured: 0.3 s -> 20-37 s for
+# 15 order-6 solves while another process ran). One thread for this module, restored after.
+pytestmark = pytest.mark.usefixtures("one_thread_module")
 
 
 def tip(eq, b: int = 0) -> np.ndarray:

@@ -14,6 +14,7 @@ import math
 
 import numpy as np
 import pytest
+from conftest import E, G
 
 import torchpvs as tp
 from torchpvs.reference import solve_standard
@@ -81,7 +82,7 @@ def test_high_precurvature_single_tube_circle(kappa):
     """One tube, 50 mm straight + 80 mm at kappa (3.2 rad of arc at 40 1/m: beyond a half
     turn), 30 mm of the straight part in the guide: a straight piece then a circle."""
     from torchpvs.scene import Tube
-    sc = Scene((Tube(58e9, 21.5e9, 0.0, 1.0 * MM, 0.05, 0.08, ((), (kappa,), ())),),
+    sc = Scene((Tube(E, G, 0.0, 1.0 * MM, 0.05, 0.08, ((), (kappa,), ())),),
                Actuation((0.03,), (0.0,)))
     eq = tp.solve(sc)
     assert bool(eq.converged[0])

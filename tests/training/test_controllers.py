@@ -8,7 +8,6 @@ import math
 
 import numpy as np
 import pytest
-import torch
 
 import envs
 from envs.robots import solve_batch
@@ -216,12 +215,10 @@ def test_reads_state_from_a_dummy_vec_env_of_single_envs():
 def model_error_runs():
     """6 seeded goals of the nominal Fig. 3 robot, both controllers planning on a model whose
     precurvatures are 5 % too high (the learning study: pts drops to 0 % within 1 mm)."""
-    from torchpvs.testing import scaled_tubes
+    from torchpvs.testing import one_thread, scaled_tubes
     from training.controllers import PlanThenServoFeedbackController
     from training.evaluate import rollout
-    n = torch.get_num_threads()
-    torch.set_num_threads(1)
-    try:
+    with one_thread():
         venv = envs.CTRReachVecEnv(6)
         model = scaled_tubes(venv.robot.scene, precurvature=(1.05, 1.05))
         out = {}
@@ -230,8 +227,6 @@ def model_error_runs():
             pol = cls(venv, model=model, table_size=TABLE)
             out[name] = (rollout(pol, venv, 6, seed=12345, progress=False), pol)
         return out
-    finally:
-        torch.set_num_threads(n)
 
 
 def test_tip_feedback_reaches_goals_a_wrong_model_misses(model_error_runs):
