@@ -6,6 +6,8 @@ test_training_smoke.py."""
 
 from __future__ import annotations
 
+from typing import NamedTuple
+
 import numpy as np
 import pytest
 import torch
@@ -28,6 +30,32 @@ ENV = "torchpvs/CTRReachForce-v0"
 pytestmark = pytest.mark.usefixtures("one_thread")
 
 
+class _Pair(NamedTuple):
+    """A residual-wrapped batch and a bare batch of the same robots, reset alike, with the
+    bare batch's base controller: what a zero-residual comparison steps side by side."""
+
+    wrapped: ResidualVecEnv
+    obs: dict
+    bare_env: envs.CTRReachVecEnv
+    bare_obs: dict
+    bare: PlanThenServoController
+    n_plain: int          # entries of the bare observation (the plan features follow)
+
+
+def _pair(spec, controller, seed: int, **env_kwargs) -> _Pair:
+    """Two 2-robot batches built with ``env_kwargs``, one wrapped with ``spec``, both seeded
+    ``seed`` and reset, and ``controller`` on the bare one."""
+    wrapped = ResidualVecEnv(envs.CTRReachVecEnv(2, **env_kwargs), spec)
+    bare_env = envs.CTRReachVecEnv(2, **env_kwargs)
+    for e in (wrapped, bare_env):
+        e.seed(seed)
+    obs = wrapped.reset()
+    bare_obs = bare_env.reset()
+    bare = controller(bare_env, table_size=TABLE)
+    n_plain = bare_env.observation_space["observation"].shape[0]
+    return _Pair(wrapped, obs, bare_env, bare_obs, bare, n_plain)
+
+
 def _features(target, st):
     """The plan features written out from their definition (module docstring)."""
     ref = PLAN_OBS_PERIODS * st.control_period * st.action_scale / st.damping
@@ -38,14 +66,8 @@ def test_plan_obs_appends_the_plan_and_a_zero_residual_is_plan_then_servo():
     """With plan_obs the observation gains tanh((x* - x) / (10 h v_max)) for the plan x* the
     base made at reset, the observation space says so, and a zero residual drives the robots
     exactly as the bare controller does (same seeds, same goals)."""
-    wrapped = ResidualVecEnv(envs.CTRReachVecEnv(2, max_episode_steps=20), SPEC)
-    bare_env = envs.CTRReachVecEnv(2, max_episode_steps=20)
-    for e in (wrapped, bare_env):
-        e.seed(5)
-    obs = wrapped.reset()
-    bare_obs = bare_env.reset()
-    bare = PlanThenServoController(bare_env, table_size=TABLE)
-    n_plain = bare_env.observation_space["observation"].shape[0]
+    wrapped, obs, bare_env, bare_obs, bare, n_plain = _pair(
+        SPEC, PlanThenServoController, 5, max_episode_steps=20)
     assert wrapped.observation_space["observation"].shape == (n_plain + 4,)
     assert wrapped.observation_space.contains({k: v[0] for k, v in obs.items()})
     np.testing.assert_array_equal(obs["observation"][:, :n_plain], bare_obs["observation"])
@@ -119,14 +141,8 @@ def test_a_zero_residual_on_pts_feedback_is_pts_feedback_and_sees_its_setpoint()
     features follow its corrected setpoint (its ``reference``), not the first plan."""
     kw = dict(max_episode_steps=40, plant_scale=0.1, tip_force=0.3, tip_noise=1e-4)
     spec = {"base": "pts_feedback", "plan_obs": True, "table_size": TABLE}
-    wrapped = ResidualVecEnv(envs.CTRReachVecEnv(2, **kw), spec)
-    bare_env = envs.CTRReachVecEnv(2, **kw)
-    for e in (wrapped, bare_env):
-        e.seed(11)
-    obs = wrapped.reset()
-    bare_obs = bare_env.reset()
-    bare = PlanThenServoFeedbackController(bare_env, table_size=TABLE)
-    n_plain = bare_env.observation_space["observation"].shape[0]
+    wrapped, obs, bare_env, bare_obs, bare, n_plain = _pair(
+        spec, PlanThenServoFeedbackController, 11, **kw)
     corrected = False
     for _ in range(35):
         a_bare = bare(bare_obs)      # the base acts first: the agent sees the setpoint it uses
