@@ -1,33 +1,21 @@
-"""benchmarks/reach_ceiling.py: the solution-set search behind the reaching task's headroom
-figure (docs/results.md). Reference: a goal made as the tip of a known actuation, so a plan with
-(almost) no travel exists from that actuation."""
+"""training/plan_search.py: the solution-set search behind the reaching task's headroom figure
+(docs/results.md, ``benchmarks/reach_ceiling.py``). Reference: a goal made as the tip of a known
+actuation, so a plan with (almost) no travel exists from that actuation."""
 
 from __future__ import annotations
-
-import importlib.util
-from pathlib import Path
 
 import numpy as np
 import torch
 
 import envs
 from envs.robots import solve_batch
-
-_PATH = Path(__file__).resolve().parents[2] / "benchmarks" / "reach_ceiling.py"
-
-
-def _module():
-    spec = importlib.util.spec_from_file_location("reach_ceiling", _PATH)
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+from training.plan_search import best_plans
 
 
 def test_best_plan_finds_the_goal_s_own_actuation_nearby():
     """From the actuation whose tip is the goal, the best plan found ends on the goal and needs
     at most the travel of half a grid step in relative rotation (5 deg at 1.57 rad/s: under a
     control period), far less than from a distant start; its load is the equilibrium's."""
-    rc = _module()
     venv = envs.CTRReachVecEnv(2, robot="fig3_two_tube", control="force")
     venv.seed(3)
     venv.reset()
@@ -41,8 +29,8 @@ def test_best_plan_finds_the_goal_s_own_actuation_nearby():
     eqf = solve_batch(robot, far)
     gf = torch.cat([eqf.actuation_forces, eqf.actuation_torques], -1).numpy()
     args = dict(scale=st.action_scale, damping=st.damping, h=st.control_period)
-    x, g, steps = rc.best_plans(robot, np.concatenate([x_goal, far]), np.concatenate([g0, gf]),
-                                np.concatenate([goal, goal]), **args)
+    x, g, steps = best_plans(robot, np.concatenate([x_goal, far]), np.concatenate([g0, gf]),
+                          np.concatenate([goal, goal]), **args)
     tips = solve_batch(robot, x).tip_position.numpy()
     assert np.all(np.linalg.norm(tips - goal, axis=-1) < 2e-5), tips - goal
     assert steps[0] < 1.0 and steps[1] > 10 * steps[0] + 5, steps
