@@ -203,8 +203,8 @@ def test_every_per_element_computation_goes_through_the_kernel(monkeypatch):
     computation of the driver through KERNELS[name] -- the cold guess, the Newton solve, the
     single steps of the order estimate, the tip poses, the new-section step of the one-sided
     forces at a kink and the SPD solve of the rotation predictor -- so a kernel registered
-    with the eager functions wrapped sees each of them called, and returns the default
-    solve's results bit for bit. An unknown name is refused."""
+    with the eager functions wrapped sees each of them called, and returns the eager
+    kernel's results bit for bit. An unknown name is refused."""
     assert isinstance(KERNELS["newton"], tp.kernel.Kernel) and KERNELS["newton"] is EAGER
     calls: dict[str, int] = {}
 
@@ -223,7 +223,7 @@ def test_every_per_element_computation_goes_through_the_kernel(monkeypatch):
         ("a kink at the orifice", dict(insertion=torch.tensor([[Ls, Ls + 0.02]], dtype=DT))),
     ]
     for what, kw in cases:
-        ref = tp.solve(scene, **kw)
+        ref = tp.solve(scene, **kw, options=tp.SolverOptions(kernel="newton"))
         eq = tp.solve(scene, **kw, options=tp.SolverOptions(kernel="spy"))
         for a, b in ((eq.q, ref.q), (eq.tip_position, ref.tip_position),
                      (eq.actuation_forces, ref.actuation_forces),

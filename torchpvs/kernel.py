@@ -23,6 +23,7 @@ from typing import NamedTuple
 
 import torch
 
+from . import compiled
 from .batch_linalg import active_index, chunked, compact, compact_scaled, expand, spd_solve, take
 from .mechanics import (
     compact_q,
@@ -35,7 +36,8 @@ from .mechanics import (
 from .newton import NewtonResult, Problem, derivatives, newton, scaled_residual
 from .sections import Discretization, n_coordinates
 
-__all__ = ["EAGER", "KERNELS", "Kernel", "default_guess", "new_section_step", "newton_step"]
+__all__ = ["COMPILED", "EAGER", "KERNELS", "Kernel", "default_guess", "new_section_step",
+           "newton_step"]
 
 
 class Kernel(NamedTuple):
@@ -176,5 +178,27 @@ def default_guess(lay, maps: dict, tab: dict, disc: Discretization, N: int) -> t
 EAGER = Kernel(guess=default_guess, solve=newton, step=newton_step,
                section_step=new_section_step, pose=tip_pose, spd_solve=spd_solve)
 
+
+
+def _compiled_solve(q, prob, L_char, **kwargs):
+    out = compiled.solve(q, prob, L_char, **kwargs)
+    return newton(q, prob, L_char, **kwargs) if out is None else out
+
+
+def _compiled_step(q, prob):
+    out = compiled.step(q, prob)
+    return newton_step(q, prob) if out is None else out
+
+
+def _compiled_pose(q, lay, tab, constants):
+    out = compiled.pose(q, lay, tab, constants)
+    return tip_pose(q, lay, tab, constants) if out is None else out
+
+
+#: The compiled CPU kernel (:mod:`torchpvs.compiled`, numba): the Newton solve and step and
+#: the tip pose per element, the eager kernel wherever it does not apply (GPU tensors; a tip
+#: load for the solve and step).
+COMPILED = EAGER._replace(solve=_compiled_solve, step=_compiled_step, pose=_compiled_pose)
+
 #: Kernels by name (``SolverOptions.kernel``).
-KERNELS: dict[str, Kernel] = {"newton": EAGER}
+KERNELS: dict[str, Kernel] = {"newton": EAGER, "compiled": COMPILED}

@@ -1,0 +1,177 @@
+"""The compiled CPU kernel (torchpvs.compiled, numba) against the eager reference kernel.
+
+Reference: the eager kernel (torchpvs.kernel.EAGER, batched torch), which the rest of the suite
+checks against closed forms, the paper's tables and the independent standard-model solver. The
+compiled kernel re-implements the same iteration element by element, so both must give the same
+equilibria: tips within 1e-12 m, actuation forces within 1e-9 N (N m), and the same
+convergence flags, iteration counts and stability verdicts, on the suite's scenes (the paper's
+Fig. 3 and section III-B robots, a kink at the orifice, three nested tubes, seeded random
+robots, unstable equilibria) and in float32.
+"""
+
+from __future__ import annotations
+
+import dataclasses
+import math
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import HealthCheck, given, settings
+
+import torchpvs as tp
+from torchpvs import SolverOptions, compiled
+from torchpvs.kernel import COMPILED, EAGER, KERNELS
+from torchpvs.testing import D1_FIG3, SWEEPS, fig3, nested_scene, random_scene, scene_strategy
+
+DT = torch.float64
+pytestmark = pytest.mark.skipif(not compiled.available(), reason="numba is not installed")
+
+
+def both(scene, options: SolverOptions | None = None, **kw):
+    """The same solve on the eager and the compiled kernel."""
+    opts = options or SolverOptions()
+    return tuple(tp.solve(scene, **kw, options=dataclasses.replace(opts, kernel=k))
+                 for k in ("newton", "compiled"))
+
+
+def assert_same(eager, comp, tip_tol=1e-12, force_tol=1e-9):
+    """Same equilibria: tips, forces, flags, iterations, verdicts."""
+    assert torch.equal(eager.converged, comp.converged)
+    assert torch.equal(eager.iterations, comp.iterations)
+    assert torch.equal(eager.stable, comp.stable)
+    assert float((eager.tip_position - comp.tip_position).abs().max()) <= tip_tol
+    for a, b in ((eager.actuation_forces, comp.actuation_forces),
+                 (eager.actuation_torques, comp.actuation_torques)):
+        both_nan = torch.isnan(a) & torch.isnan(b)
+        assert torch.equal(torch.isnan(a), torch.isnan(b))
+        assert float((a - b).abs()[~both_nan].max()) <= force_tol
+    ea, eb = eager.min_stiffness_eigenvalue, comp.min_stiffness_eigenvalue
+    assert torch.allclose(ea, eb, rtol=1e-6, atol=1e-12, equal_nan=True)
+
+
+@pytest.mark.parametrize("sweep", sorted(SWEEPS))
+def test_fig3_sweeps_match_the_eager_kernel(sweep):
+    """The paper's Fig. 3 sweeps (section III-C: D1 = 93.5 mm, the outer tube's kink at the
+    orifice), one batch per sweep, cold and warm."""
+    D2, alphas = SWEEPS[sweep]
+    rot = torch.tensor([[0.0, math.radians(a)] for a in alphas], dtype=DT)
+    ins = torch.tensor([[D1_FIG3, D2]] * len(alphas), dtype=DT)
+    eager, comp = both(fig3(), insertion=ins, rotation=rot)
+    assert_same(eager, comp)
+    warm_e, warm_c = both(fig3(), insertion=ins, rotation=rot + 0.02, initial=eager)
+    assert_same(warm_e, warm_c)
+
+
+def test_a_batch_of_mixed_sections_matches():
+    """Insertions that put a tube in the guide, at the orifice kink and beyond (elements with
+    different active sections in one batch), rotations over the circle."""
+    rng = np.random.default_rng(3)
+    B = 40
+    ins = torch.tensor(np.column_stack([rng.uniform(0.0, 0.12, B), rng.uniform(0.12, 0.21, B)]),
+                       dtype=DT)
+    rot = torch.tensor(rng.uniform(-math.pi, math.pi, (B, 2)), dtype=DT)
+    assert_same(*both(fig3(), insertion=ins, rotation=rot))
+
+
+@pytest.mark.parametrize("alpha2", [170.0, 186.0, 190.0])
+@pytest.mark.parametrize("method", ["minimize", "root"])
+def test_multistable_robot_same_branch_and_verdict(alpha2, method):
+    """Section III-B robot beyond its stability threshold (three equilibria): ``minimize``
+    leaves the unstable middle one (saddle test and escape), ``root`` lands on it (unstable
+    verdict). Both kernels must agree on the equilibrium and the verdict."""
+    sc = tp.load_scene("renda2021_section3b").with_actuation(
+        rotation=[0.0, math.radians(alpha2)])
+    eager, comp = both(sc, options=SolverOptions(method=method))
+    assert_same(eager, comp)
+    assert bool(eager.stable[0]) is (method == "minimize")
+
+
+@pytest.mark.parametrize("seed", range(6))
+def test_seeded_random_robots_match(seed):
+    assert_same(*both(random_scene(seed)))
+
+
+@pytest.mark.parametrize("n_tubes", [3, 4])
+def test_nested_robots_match(n_tubes):
+    assert_same(*both(nested_scene(n_tubes, seed=1)))
+
+
+@settings(max_examples=12, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(scene_strategy(max_tubes=3))
+def test_random_scenes_match(scene):
+    """Property: on any valid scene of the suite's strategy the kernels agree (a tip load, if
+    the strategy draws one, runs the eager kernel in both)."""
+    assert_same(*both(scene))
+
+
+def test_float32_matches_float64_eager_to_float32_precision():
+    """float32: the compiled kernel converges where the eager one does, to the same equilibrium
+    within float32's resolution."""
+    rot = torch.tensor([[0.0, math.radians(a)] for a in range(0, 281, 40)], dtype=torch.float32)
+    ins = torch.tensor([[D1_FIG3, 0.2085]] * rot.shape[0], dtype=torch.float32)
+    e32 = tp.solve(fig3(), insertion=ins, rotation=rot, options=SolverOptions(kernel="newton"))
+    c32 = tp.solve(fig3(), insertion=ins, rotation=rot, options=SolverOptions(kernel="compiled"))
+    assert c32.tip_position.dtype == torch.float32
+    assert bool(c32.converged.all()) and torch.equal(e32.converged, c32.converged)
+    assert float((e32.tip_position - c32.tip_position).abs().max()) < 1e-6
+
+
+def test_a_tip_load_runs_the_eager_solve_and_agrees():
+    """With a tip load the load Hessian needs the pose chain: the compiled kernel hands the
+    Newton solve and steps to the eager kernel (only the tip poses are compiled), so the two
+    kernels give the same iterations and the same equilibrium to rounding."""
+    sc = fig3().with_load(tip_force=[0.1, -0.2, 0.05])
+    eager, comp = both(sc)
+    assert bool(comp.converged.all())
+    assert_same(eager, comp)
+    assert float((eager.q - comp.q).abs().max()) < 1e-12
+
+
+def test_the_compiled_kernel_is_registered_and_runs_solve_and_step(monkeypatch):
+    """KERNELS["compiled"] replaces solve, step (the order estimate's Newton steps) and pose,
+    and keeps the eager functions for the rest; the compiled solve and step are reached by a
+    default automatic-order solve."""
+    assert KERNELS["compiled"] is COMPILED
+    for f in ("guess", "section_step", "spd_solve"):
+        assert getattr(COMPILED, f) is getattr(EAGER, f)
+    calls = {"solve": 0, "step": 0}
+    real_solve, real_step = compiled.solve, compiled.step
+
+    def solve(*a, **k):
+        out = real_solve(*a, **k)
+        calls["solve"] += out is not None
+        return out
+
+    def step(*a, **k):
+        out = real_step(*a, **k)
+        calls["step"] += out is not None
+        return out
+
+    monkeypatch.setattr(compiled, "solve", solve)
+    monkeypatch.setattr(compiled, "step", step)
+    tp.solve(fig3(), options=SolverOptions(kernel="compiled", order=None))
+    assert calls["solve"] > 0 and calls["step"] > 0, calls
+
+
+@pytest.mark.parametrize("scene", [fig3(), random_scene(1), random_scene(2),
+                                   nested_scene(3, seed=1), nested_scene(4, seed=2)],
+                         ids=["fig3", "random1", "random2", "nested3", "nested4"])
+def test_the_compiled_tip_pose_is_the_magnus_chain(monkeypatch, scene):
+    """Every tip pose a solve asks for (the solution's, the order estimate's step and the
+    Magnus check's coarse pose, some with a leading dim of two coordinate sets): the compiled
+    pose against torchpvs.mechanics.tip_pose on the same arguments, to 1e-14 (position [m],
+    rotation entries, tube angles [rad])."""
+    from torchpvs.mechanics import tip_pose
+    worst = []
+
+    def both_poses(q, lay, tab, const):
+        ref = tip_pose(q, lay, tab, const)
+        out = compiled.pose(q, lay, tab, const)
+        worst.append(max(float((a - b).abs().max()) for a, b in zip(ref, out, strict=True)))
+        return ref
+
+    monkeypatch.setitem(KERNELS, "pose-check", EAGER._replace(pose=both_poses))
+    rot = torch.tensor(np.random.default_rng(1).uniform(-3, 3, (16, len(scene.tubes))), dtype=DT)
+    tp.solve(scene, rotation=rot, options=SolverOptions(kernel="pose-check"))
+    assert worst and max(worst) < 1e-14, worst

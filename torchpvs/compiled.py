@@ -1,0 +1,854 @@
+"""Stage 5b — the compiled CPU kernel: the damped Newton solve and the Newton step, per element.
+
+The same iteration as the eager kernel (:mod:`torchpvs.newton`: Jacobi-scaled
+Levenberg–Marquardt damping, the trusted pure-Newton phase, the Armijo line search, the saddle
+test and escape, the stability verdict), written as plain loops over one element's coordinates
+and compiled by numba (``@njit(cache=True)``: machine code cached beside this file, so only
+the first process that uses it compiles). Each batch element runs on its own, in parallel
+across ``torch.get_num_threads()`` threads for batches of 8 or more. One element's gradient and
+exact Hessian (the node sums of :func:`torchpvs.mechanics.elastic_grad_hess`), its
+factorization and the line-search energies cost a few microseconds; the eager kernel spends
+about a millisecond per iteration on operator dispatch at small batches.
+
+What it covers: float32 and float64 CPU tensors without a tip load (with a load the eager
+kernel's load Hessian through the Magnus chain is used: the whole call falls back to
+:data:`torchpvs.kernel.EAGER`), ``method`` ``"minimize"`` and ``"root"``. A ``deadline`` is
+checked once, on entry (past it, the eager kernel takes its single evaluation). Differences
+from the eager kernel, all at rounding level or in rare branches: sums are taken in another
+order (coordinates agree to ~1e-15 relative, iterations and verdicts are the same on the test
+scenes) and the 8-escape cap of the saddle escape counts per element (the eager kernel counts
+per batch). The energy at the solution is left to the driver (eager, bit for bit).
+
+:data:`COMPILED` (``SolverOptions(kernel="compiled")``) is the eager kernel with ``solve`` and
+``step`` replaced; :func:`available` says whether numba is importable here.
+"""
+
+from __future__ import annotations
+
+import math
+import time
+import warnings
+
+import numpy as np
+import torch
+
+from .mechanics import compact_q, expand_q
+from .newton import NewtonResult, Problem, tolerance
+
+try:
+    import numba
+    from numba import njit, prange
+except ImportError:      # pragma: no cover - numba is a dependency; this is the fallback
+    numba = None
+    prange = range
+
+    def njit(*args, **kwargs):      # the functions below stay plain Python (never called)
+        return lambda f: f
+
+__all__ = ["available", "pose", "solve", "step"]
+
+# Batches from this size run in parallel (a parallel launch costs ~10 us: a serial loop over a
+# few elements is faster).
+_PARALLEL_FROM = 8
+
+
+def available() -> bool:
+    """Whether the compiled kernel can run here (numba imports)."""
+    return numba is not None
+
+
+def _get(maps, key):
+    return maps[key] if isinstance(maps, dict) else getattr(maps, key)
+
+
+def _applicable(q: torch.Tensor, prob: Problem) -> bool:
+    if q.device.type != "cpu" or q.dtype not in (torch.float32, torch.float64):
+        return False
+    if numba is None:
+        # (Python's default filter shows this once per process)
+        warnings.warn("torchpvs: numba is not importable, so the compiled kernel runs the "
+                      "eager one (SolverOptions(kernel='newton')); pip install numba",
+                      RuntimeWarning, stacklevel=4)
+        return False
+    if prob.with_load:   # the load's Hessian needs the pose chain (eager); zero loads are free
+        lay = prob.lay
+        return not bool((lay.force != 0).any() | (lay.moment != 0).any())
+    return True
+
+
+def _arrays(prob: Problem, dtype: torch.dtype):
+    """The maps a compiled evaluation reads, as contiguous numpy arrays of ``dtype``."""
+    m = prob.maps
+
+    def a(key):
+        return np.ascontiguousarray(_get(m, key).detach().to(dtype).numpy())
+
+    return (a("qmask"), a("psi0"), a("bvec"), a("h"), a("ustar"), a("EIw"), a("EIws"),
+            a("GJw"), a("H_sections"), a("guide"), a("guide_const"), a("phi"), a("Qb"))
+
+
+def _numpy(t: torch.Tensor) -> np.ndarray:
+    return np.ascontiguousarray(t.detach().numpy())
+
+
+def _set_threads(B: int) -> bool:
+    if B < _PARALLEL_FROM:
+        return False
+    n = min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)
+    numba.set_num_threads(max(1, n))
+    return n > 1
+
+
+def solve(q: torch.Tensor, prob: Problem, L_char: torch.Tensor, *, method: str, tol: float,
+          max_iter: int, deadline: float | None = None) -> NewtonResult | None:
+    """:func:`torchpvs.newton.newton`'s contract (same arguments and :class:`NewtonResult`),
+    compiled; None where the compiled kernel does not apply (see the module docstring: the
+    caller then runs the eager kernel)."""
+    if (not _applicable(q, prob) or method not in ("minimize", "root")
+            or (deadline is not None and time.perf_counter() > deadline)):
+        return None
+    dtype = q.dtype
+    npt = np.float64 if dtype == torch.float64 else np.float32
+    B, nq = q.shape
+    cidx = _get(prob.maps, "cidx")
+    qc = _numpy(compact_q(q, cidx).to(dtype))
+    nc = qc.shape[1]
+    arrs = _arrays(prob, dtype)
+    Lc = _numpy(L_char.to(dtype))
+    H = np.empty((B, nc, nc), dtype=npt)
+    g = np.empty((B, nc), dtype=npt)
+    U = np.empty(B, dtype=npt)
+    res = np.empty(B, dtype=npt)
+    it = np.zeros(B, dtype=np.int64)
+    conv = np.zeros(B, dtype=np.bool_)
+    verdict = np.empty(B, dtype=np.int8)
+    eps = float(torch.finfo(dtype).eps)
+    consts = np.array([tolerance(tol, dtype), 0.01 * eps ** 0.5, eps,
+                       float(torch.finfo(dtype).tiny)], dtype=npt)
+    run = _newton_parallel if _set_threads(B) else _newton_serial
+    run(qc, *arrs, Lc, consts, method == "minimize", max_iter, H, g, U, res, it, conv, verdict)
+    t = torch.from_numpy
+    # energy None: the driver evaluates it with the eager energy, so that Equilibrium.energy is
+    # bit for bit mechanics.elastic_energy_maps at the returned q (the compiled sums round
+    # differently)
+    return NewtonResult(expand_q(t(qc), cidx, nq), t(H), expand_q(t(g), cidx, nq), t(conv),
+                        t(res), t(it), t(verdict), None)
+
+
+def step(q: torch.Tensor, prob: Problem) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """:func:`torchpvs.kernel.newton_step`'s contract, compiled; None where the compiled
+    kernel does not apply."""
+    if not _applicable(q, prob):
+        return None
+    dtype = q.dtype
+    npt = np.float64 if dtype == torch.float64 else np.float32
+    nq = q.shape[-1]
+    cidx = _get(prob.maps, "cidx")
+    qc = _numpy(compact_q(q, cidx).to(dtype))
+    ok = np.zeros(qc.shape[0], dtype=np.bool_)
+    eps = float(torch.finfo(dtype).eps)
+    consts = np.array([0.0, 0.0, eps, float(torch.finfo(dtype).tiny)], dtype=npt)
+    run = _step_parallel if _set_threads(qc.shape[0]) else _step_serial
+    run(qc, *_arrays(prob, dtype), consts, ok)
+    okt = torch.from_numpy(ok)
+    q1 = expand_q(torch.from_numpy(qc), cidx, nq)
+    return torch.where(okt[:, None], q1, q), okt
+
+
+def pose(q: torch.Tensor, lay, tab, const) -> tuple | None:
+    """:func:`torchpvs.mechanics.tip_pose`'s contract with the pose constants ``const`` (``q
+    (..., B, nq)``), compiled: ``(tip (..., B, 3), R (..., B, 3, 3), psi_tip (..., B, N))``;
+    None where the compiled kernel does not apply (a tensor that requires grad, not CPU)."""
+    if (numba is None or q.device.type != "cpu" or q.dtype not in (torch.float32, torch.float64)
+            or q.requires_grad or lay.qmask.requires_grad):
+        return None
+    dtype = q.dtype
+    lead = q.shape[:-1]
+    B, nq = lay.qmask.shape
+    qf = _numpy(q.reshape(-1, B, nq).to(dtype))
+    N = lay.psi0.shape[-1]
+    S = lay.h.shape[-1]
+
+    def a(t):
+        return np.ascontiguousarray(t.detach().to(dtype).numpy())
+
+    phi, Qb = _get(tab, "phi_m"), _get(tab, "Q_m")
+    tip = np.empty(qf.shape[:2] + (3,), dtype=qf.dtype)
+    R = np.empty(qf.shape[:2] + (3, 3), dtype=qf.dtype)
+    psi_tip = np.empty(qf.shape[:2] + (N,), dtype=qf.dtype)
+    small = 1e-6 if dtype == torch.float64 else 1e-3
+    run = _pose_parallel if _set_threads(qf.shape[0] * B) else _pose_serial
+    sec = np.ascontiguousarray(_get(const, "sec").numpy())
+    per_section = (a(_get(const, k)) for k in ("h", "presc_inc", "ustar_held", "presc_local"))
+    run(qf, a(lay.qmask), a(lay.psi0), a(lay.D), a(lay.tip_tube), sec, *per_section, a(phi),
+        a(Qb), S, small, tip, R, psi_tip)
+    t = torch.from_numpy
+    return (t(tip).reshape(lead + (3,)), t(R).reshape(lead + (3, 3)),
+            t(psi_tip).reshape(lead + (N,)))
+
+
+# ---------------------------------------------------------------------------------------------
+# Compiled functions. One element: q (nc,) compact coordinates; the maps of mechanics.build_maps
+# at that element: qmask (nc,), psi0 (N,), bvec (S, N, nc), h (S,), ustar (S, Q, N, 3),
+# EIw/GJw (S, Q, N), EIws (S, Q), H_sections (S, C, n, C, n), guide (nc,), guide_const (),
+# and the shared tables phi, Qb (Q, n). C = 2 + N; section s's coordinates start at N + s C n.
+
+_jit = njit(cache=True, nogil=True)
+
+@_jit
+def evaluate(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb,
+             order, g, H):
+    """The elastic energy (returned); with order >= 1 its gradient into g, with order 2
+    its Hessian into H (mechanics.elastic_grad_hess, term by term)."""
+    N = psi0.shape[0]
+    S = h.shape[0]
+    Q, n = phi.shape
+    C = 2 + N
+    Cn = C * n
+    nc = q.shape[0]
+    U = 0.0
+    if order >= 1:
+        g[:] = 0.0
+    if order >= 2:
+        H[:, :] = 0.0
+    base = np.empty(N, dtype=q.dtype)
+    dp = np.empty(N, dtype=q.dtype)
+    loc = np.empty(N, dtype=q.dtype)
+    Rx = np.empty(N, dtype=q.dtype)
+    Ry = np.empty(N, dtype=q.dtype)
+    gpsi_sum = np.zeros((S, N), dtype=q.dtype)
+    gX = np.zeros((C, n), dtype=q.dtype)
+    alpha = np.zeros((S, N), dtype=q.dtype)
+    beta = np.zeros((N, n), dtype=q.dtype)
+    mu = np.zeros((N, 2, n), dtype=q.dtype)
+    gq = np.zeros((N, n, n), dtype=q.dtype)
+    nqt = np.zeros((N, 2, n, n), dtype=q.dtype)
+    big = nc if order >= 2 else 1
+    V = np.zeros((S * N, big), dtype=q.dtype)
+    G = np.zeros((big, big), dtype=q.dtype)
+    X = np.empty((C, n), dtype=q.dtype)
+    for s in range(S):
+        hh = 0.5 * h[s]
+        off = N + s * Cn
+        for c in range(C):
+            for p in range(n):
+                X[c, p] = q[off + c * n + p] * qm[off + c * n + p]
+        for j in range(N):
+            acc = 0.0
+            for i in range(nc):
+                acc += bvec[s, j, i] * q[i]
+            base[j] = psi0[j] + acc
+        if order >= 1:
+            gX[:, :] = 0.0
+        if order >= 2:
+            beta[:, :] = 0.0
+            mu[:, :, :] = 0.0
+            gq[:, :, :] = 0.0
+            nqt[:, :, :, :] = 0.0
+        for k in range(Q):
+            ux = 0.0
+            uy = 0.0
+            for p in range(n):
+                ux += X[0, p] * phi[k, p]
+                uy += X[1, p] * phi[k, p]
+            for j in range(N):
+                a = 0.0
+                b = 0.0
+                for p in range(n):
+                    a += X[2 + j, p] * phi[k, p]
+                    b += X[2 + j, p] * Qb[k, p]
+                dp[j] = a
+                loc[j] = b
+            sERx = 0.0
+            sERy = 0.0
+            for j in range(N):
+                psi = base[j] + hh * loc[j]
+                cs = math.cos(psi)
+                sn = math.sin(psi)
+                usx = us[s, k, j, 0]
+                usy = us[s, k, j, 1]
+                Rx[j] = cs * usx - sn * usy
+                Ry[j] = sn * usx + cs * usy
+                dx = ux - Rx[j]
+                dy = uy - Ry[j]
+                tors = dp[j] - us[s, k, j, 2]
+                U += 0.5 * (EIw[s, k, j] * (dx * dx + dy * dy) + GJw[s, k, j] * tors * tors)
+                sERx += EIw[s, k, j] * Rx[j]
+                sERy += EIw[s, k, j] * Ry[j]
+            if order == 0:
+                continue
+            gux = EIws[s, k] * ux - sERx
+            guy = EIws[s, k] * uy - sERy
+            for p in range(n):
+                gX[0, p] += gux * phi[k, p]
+                gX[1, p] += guy * phi[k, p]
+            for j in range(N):
+                ERx = EIw[s, k, j] * Rx[j]
+                ERy = EIw[s, k, j] * Ry[j]
+                gpsi = ERy * ux - ERx * uy
+                gdp = GJw[s, k, j] * (dp[j] - us[s, k, j, 2])
+                gpsi_sum[s, j] += gpsi
+                for p in range(n):
+                    gX[2 + j, p] += gdp * phi[k, p] + hh * gpsi * Qb[k, p]
+                if order >= 2:
+                    hpp = ERx * ux + ERy * uy
+                    alpha[s, j] += hpp
+                    for p in range(n):
+                        beta[j, p] += hpp * Qb[k, p]
+                        mu[j, 0, p] += ERy * phi[k, p]
+                        mu[j, 1, p] -= ERx * phi[k, p]
+                        for r in range(n):
+                            gq[j, p, r] += hpp * Qb[k, p] * Qb[k, r]
+                            nqt[j, 0, p, r] += ERy * phi[k, p] * Qb[k, r]
+                            nqt[j, 1, p, r] -= ERx * phi[k, p] * Qb[k, r]
+        if order >= 1:
+            for c in range(C):
+                for p in range(n):
+                    g[off + c * n + p] += gX[c, p] * qm[off + c * n + p]
+        if order >= 2:
+            # V rows (s, j): alpha b / 2, plus beta at (j's torsion) and mu at the bending
+            # coefficients of section s; the within-section blocks go straight into H.
+            for j in range(N):
+                r0 = s * N + j
+                for i in range(nc):
+                    V[r0, i] = 0.5 * alpha[s, j] * bvec[s, j, i]
+                for p in range(n):
+                    V[r0, off + (2 + j) * n + p] += hh * beta[j, p]
+                    V[r0, off + p] += mu[j, 0, p]
+                    V[r0, off + n + p] += mu[j, 1, p]
+            for c in range(C):
+                for p in range(n):
+                    for c2 in range(C):
+                        for r in range(n):
+                            H[off + c * n + p, off + c2 * n + r] += Hsec[s, c, p, c2, r]
+            for j in range(N):
+                tj = off + (2 + j) * n
+                for p in range(n):
+                    for r in range(n):
+                        H[tj + p, tj + r] += hh * hh * gq[j, p, r]
+                        for a in range(2):
+                            v = hh * nqt[j, a, p, r]
+                            H[off + a * n + p, tj + r] += v
+                            H[tj + r, off + a * n + p] += v
+    for i in range(nc):
+        U += 0.5 * guide[i] * q[i] * q[i]
+    U += gconst
+    if order >= 1:
+        for s in range(S):
+            for j in range(N):
+                w = gpsi_sum[s, j]
+                for i in range(nc):
+                    g[i] += w * bvec[s, j, i]
+        for i in range(nc):
+            g[i] += guide[i] * q[i]
+    if order >= 2:
+        # b^T V + V^T b (symmetric: the upper triangle, mirrored), and the guide diagonal
+        for r in range(S * N):
+            sr = r // N
+            jr = r % N
+            for i in range(nc):
+                bi = bvec[sr, jr, i]
+                vi = V[r, i]
+                if bi == 0.0 and vi == 0.0:
+                    continue
+                for l in range(i, nc):
+                    G[i, l] += bi * V[r, l] + vi * bvec[sr, jr, l]
+        for i in range(nc):
+            H[i, i] += G[i, i] + guide[i]
+            for l in range(i + 1, nc):
+                H[i, l] += G[i, l]
+                H[l, i] += G[i, l]
+    return U
+
+@_jit
+def cholesky(A, L):
+    """Lower Cholesky factor of A into L; False where A is not positive definite."""
+    n = A.shape[0]
+    for j in range(n):
+        d = A[j, j]
+        for k in range(j):
+            d -= L[j, k] * L[j, k]
+        if not d > 0.0:         # (also NaN)
+            return False
+        d = math.sqrt(d)
+        L[j, j] = d
+        for i in range(j + 1, n):
+            s = A[i, j]
+            for k in range(j):
+                s -= L[i, k] * L[j, k]
+            L[i, j] = s / d
+        for i in range(j):
+            L[i, j] = 0.0
+    return True
+
+@_jit
+def cho_solve(L, b, x):
+    n = L.shape[0]
+    for i in range(n):
+        s = b[i]
+        for k in range(i):
+            s -= L[i, k] * x[k]
+        x[i] = s / L[i, i]
+    for i in range(n - 1, -1, -1):
+        s = x[i]
+        for k in range(i + 1, n):
+            s -= L[k, i] * x[k]
+        x[i] = s / L[i, i]
+
+@_jit
+def lu_solve(A, b, x):
+    """Gaussian elimination with partial pivoting (A and b overwritten); False on a zero
+    pivot (LAPACK getrf's info != 0)."""
+    n = A.shape[0]
+    for j in range(n):
+        p = j
+        big = abs(A[j, j])
+        for i in range(j + 1, n):
+            if abs(A[i, j]) > big:
+                big = abs(A[i, j])
+                p = i
+        if big == 0.0:
+            return False
+        if p != j:
+            for k in range(n):
+                A[j, k], A[p, k] = A[p, k], A[j, k]
+            b[j], b[p] = b[p], b[j]
+        for i in range(j + 1, n):
+            f = A[i, j] / A[j, j]
+            for k in range(j + 1, n):
+                A[i, k] -= f * A[j, k]
+            b[i] -= f * b[j]
+    for i in range(n - 1, -1, -1):
+        s = b[i]
+        for k in range(i + 1, n):
+            s -= A[i, k] * x[k]
+        x[i] = s / A[i, i]
+    return True
+
+@_jit
+def scaled_residual(g, H, Lc, tiny, sc):
+    nc = g.shape[0]
+    res = 0.0
+    finite = True
+    for i in range(nc):
+        d = H[i, i]
+        if not math.isfinite(d) or not math.isfinite(g[i]):
+            finite = False
+        sc[i] = max(abs(d), tiny) ** -0.5
+        r = abs(g[i]) * (sc[i] * sc[i])
+        if r > res or r != r:
+            res = r
+    res *= Lc
+    if not finite or not math.isfinite(res):
+        return math.inf
+    return res
+
+@_jit
+def armijo(f, f0, t, slope, eps, tiny):
+    resolution = 8 * eps * max(abs(f0), tiny)
+    return ((f <= f0 + 1e-4 * t * slope) or (-slope * t <= resolution)
+            or (f - f0 <= resolution)) and math.isfinite(f)
+
+@_jit
+def all_finite(v):
+    for x in v:
+        if not math.isfinite(x):
+            return False
+    return True
+
+@_jit
+def newton_one(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb,
+               Lc, consts, minimize, max_iter, H, g, out):
+    """One element's damped Newton (newton._newton). q and H, g are overwritten with the
+    solution and the Hessian and gradient at it; out = (U, residual, iterations,
+    converged, verdict)."""
+    tol, thr, eps, tiny = consts[0], consts[1], consts[2], consts[3]
+    nc = q.shape[0]
+    dt = q.dtype
+    sc = np.empty(nc, dtype=dt)
+    L = np.zeros((nc, nc), dtype=dt)
+    A = np.empty((nc, nc), dtype=dt)
+    step = np.empty(nc, dtype=dt)
+    rhs = np.empty(nc, dtype=dt)
+    trial = np.empty(nc, dtype=dt)
+    best = np.empty(nc, dtype=dt)
+    dummy_g = np.empty(1, dtype=dt)
+    dummy_H = np.empty((1, 1), dtype=dt)
+    lam = 0.0
+    tested = False
+    escapes = 0
+    iterations = 0
+    verdict = -1
+    U_out = math.nan
+    residual = math.inf
+    converged = False
+    for _ in range(max_iter + 1):
+        U = evaluate(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi,
+                     Qb, 2, g, H)
+        U_known = minimize
+        for i in range(nc):
+            H[i, i] += 1.0 - qm[i]
+        res = scaled_residual(g, H, Lc, tiny, sc)
+        conv = res < tol
+        residual = res
+        if minimize and escapes < 8 and conv and not tested:
+            # the saddle test: S H S - thr I positive definite, without forming S H S
+            for i in range(nc):
+                for k in range(nc):
+                    A[i, k] = H[i, k]
+                A[i, i] -= thr * abs(H[i, i])
+            pd = cholesky(A, L)
+            left = False
+            if not pd:
+                for i in range(nc):
+                    for k in range(nc):
+                        A[i, k] = sc[i] * H[i, k] * sc[k]
+                ev, vec = np.linalg.eigh(A)
+                if ev[0] < -1e-8:
+                    slope = 0.0
+                    vmax = 0.0
+                    for i in range(nc):
+                        step[i] = vec[i, 0] * sc[i] * qm[i]
+                        slope += g[i] * step[i]
+                        vmax = max(vmax, abs(step[i]))
+                    sign = -1.0 if slope > 0 else 1.0
+                    den = max(vmax * Lc, 1e-30)
+                    f0 = evaluate(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide,
+                                  gconst, phi, Qb, 0, dummy_g, dummy_H)
+                    t = 1.0
+                    for _k in range(40):
+                        for i in range(nc):
+                            trial[i] = q[i] + t * (sign * step[i] / den)
+                        f = evaluate(trial, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec,
+                                     guide, gconst, phi, Qb, 0, dummy_g, dummy_H)
+                        if f < f0:
+                            left = True
+                            break
+                        t = 0.5 * t
+                    if left:
+                        q[:] = trial
+                        escapes += 1
+                        U_known = False
+            if not left:
+                verdict = 1 if pd else 0
+                tested = True
+            conv = conv and not left
+        converged = conv
+        if conv or not all_finite(q):
+            if U_known:
+                U_out = U
+            break
+        if not minimize:
+            for i in range(nc):
+                for k in range(nc):
+                    A[i, k] = sc[i] * H[i, k] * sc[k]
+                A[i, i] += 1e-14
+                rhs[i] = -sc[i] * g[i]
+            if lu_solve(A, rhs, step):
+                cap = 0.0
+                for i in range(nc):
+                    step[i] *= sc[i]
+                    cap = max(cap, abs(step[i]))
+                cap = max(cap * Lc, 1.0)
+                for i in range(nc):
+                    trial[i] = q[i] + step[i] / cap
+            else:
+                trial[:] = math.nan
+        else:
+            # Levenberg–Marquardt-damped step (newton._damped_step)
+            for i in range(nc):
+                for k in range(nc):
+                    A[i, k] = H[i, k]
+                A[i, i] += lam / (sc[i] * sc[i])
+                rhs[i] = -g[i]
+            if not cholesky(A, L):
+                for i in range(nc):
+                    for k in range(nc):
+                        A[i, k] = sc[i] * H[i, k] * sc[k]
+                ev0 = np.linalg.eigvalsh(A)[0]
+                lam = max(-ev0, 0.0) * 1.1 + 1e-3 + lam
+                for i in range(nc):
+                    for k in range(nc):
+                        A[i, k] = H[i, k]
+                    A[i, i] += lam / (sc[i] * sc[i])
+                if not cholesky(A, L):
+                    L[:, :] = math.nan
+            cho_solve(L, rhs, step)
+            smax = 0.0
+            slope = 0.0
+            for i in range(nc):
+                smax = max(smax, abs(step[i]))
+                slope += g[i] * step[i]
+            if smax != smax:
+                smax = math.inf
+            trust = lam == 0.0 and smax * Lc < 1e-3
+            for i in range(nc):
+                trial[i] = q[i] + step[i]
+            accepted = True
+            if not trust:
+                f0 = U if U_known else evaluate(q, qm, psi0, bvec, h, us, EIw, EIws, GJw,
+                                                Hsec, guide, gconst, phi, Qb, 0,
+                                                dummy_g, dummy_H)
+                f = evaluate(trial, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide,
+                             gconst, phi, Qb, 0, dummy_g, dummy_H)
+                accepted = armijo(f, f0, 1.0, slope, eps, tiny)
+                if not accepted:
+                    t = 0.5
+                    done = False
+                    for _k in range(29):
+                        for i in range(nc):
+                            best[i] = q[i] + t * step[i]
+                        f = evaluate(best, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec,
+                                     guide, gconst, phi, Qb, 0, dummy_g, dummy_H)
+                        if armijo(f, f0, t, slope, eps, tiny):
+                            done = True
+                            break
+                        t = 0.5 * t
+                    if not done:
+                        for i in range(nc):
+                            best[i] = q[i] + t * step[i]
+                    trial[:] = best
+            if accepted:
+                lam = lam * 0.1
+                if lam < 1e-2:
+                    lam = 0.0
+            else:
+                lam = min(lam * 4 + 1e-6, 1e6)
+        if all_finite(trial):
+            for i in range(nc):
+                q[i] = trial[i] * qm[i]
+        iterations += 1
+    out[0] = U_out
+    out[1] = residual
+    out[2] = iterations
+    out[3] = 1.0 if converged else 0.0
+    out[4] = verdict
+
+@_jit
+def step_one(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb, tiny):
+    """One element's undamped Newton step (kernel.newton_step), q overwritten where it
+    succeeds; returns the success flag."""
+    nc = q.shape[0]
+    dt = q.dtype
+    g = np.empty(nc, dtype=dt)
+    H = np.empty((nc, nc), dtype=dt)
+    L = np.zeros((nc, nc), dtype=dt)
+    x = np.empty(nc, dtype=dt)
+    rhs = np.empty(nc, dtype=dt)
+    sc = np.empty(nc, dtype=dt)
+    evaluate(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb, 2, g, H)
+    for i in range(nc):
+        H[i, i] += 1.0 - qm[i]
+        rhs[i] = -g[i]
+    good = cholesky(H, L)
+    if good:
+        cho_solve(L, rhs, x)
+    else:
+        # indefinite (an unstable equilibrium): LU on the Jacobi-scaled system
+        scaled_residual(g, H, 1.0, tiny, sc)
+        for i in range(nc):
+            for k in range(nc):
+                H[i, k] = sc[i] * H[i, k] * sc[k]
+            rhs[i] = sc[i] * rhs[i]
+        good = lu_solve(H, rhs, x)
+        for i in range(nc):
+            x[i] *= sc[i]
+    for i in range(nc):
+        x[i] = q[i] + x[i] * qm[i]
+    good = good and all_finite(x)
+    if good:
+        q[:] = x
+    return good
+
+
+@_jit
+def newton_into(b, q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb, Lc,
+                consts, minimize, max_iter, H, g, U, res, it, conv, verdict):
+    out = np.empty(5, dtype=q.dtype)
+    newton_one(q[b], qm[b], psi0[b], bvec[b], h[b], us[b], EIw[b], EIws[b], GJw[b], Hsec[b],
+               guide[b], gconst[b], phi, Qb, Lc[b], consts, minimize, max_iter, H[b], g[b],
+               out)
+    U[b] = out[0]
+    res[b] = out[1]
+    it[b] = int(out[2])
+    conv[b] = out[3] > 0.5
+    verdict[b] = int(out[4])
+
+
+# The batch loops: serial, and across numba's threads (prange) for larger batches.
+@njit(cache=True, nogil=True)
+def _newton_serial(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb, Lc,
+                   consts, minimize, max_iter, H, g, U, res, it, conv, verdict):
+    for b in range(q.shape[0]):
+        newton_into(b, q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb,
+                    Lc, consts, minimize, max_iter, H, g, U, res, it, conv, verdict)
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _newton_parallel(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb,
+                     Lc, consts, minimize, max_iter, H, g, U, res, it, conv, verdict):
+    for b in prange(q.shape[0]):
+        newton_into(b, q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb,
+                    Lc, consts, minimize, max_iter, H, g, U, res, it, conv, verdict)
+
+
+@njit(cache=True, nogil=True)
+def _step_serial(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb,
+                 consts, ok):
+    for b in range(q.shape[0]):
+        ok[b] = step_one(q[b], qm[b], psi0[b], bvec[b], h[b], us[b], EIw[b], EIws[b], GJw[b],
+                         Hsec[b], guide[b], gconst[b], phi, Qb, consts[3])
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _step_parallel(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb,
+                   consts, ok):
+    for b in prange(q.shape[0]):
+        ok[b] = step_one(q[b], qm[b], psi0[b], bvec[b], h[b], us[b], EIw[b], EIws[b], GJw[b],
+                         Hsec[b], guide[b], gconst[b], phi, Qb, consts[3])
+
+
+@_jit
+def se3_coefficients(t2, small):
+    """lie._coefficients: sin t / t, (1 - cos t) / t^2, (t - sin t) / t^3 of t^2."""
+    if t2 < small:
+        a = 1 - t2 / 6 + t2 * t2 / 120
+        half = 0.5 - t2 / 48 + t2 * t2 / 3840
+    else:
+        t = math.sqrt(t2)
+        a = math.sin(t) / t
+        half = math.sin(0.5 * t) / t
+    b = 2 * half * half
+    if t2 < 0.1:
+        c = (1.0 / 6 - t2 / 120 + t2 * t2 / 5040 - t2 ** 3 / 362880 + t2 ** 4 / 39916800)
+    else:
+        t = math.sqrt(t2)
+        c = (t - math.sin(t)) / (t * t * t)
+    return a, b, c
+
+
+@_jit
+def right_multiply_exp(g, om, small, tmp):
+    """g <- g exp(om) for a twist om = (omega, v) (lie.exp_se3, entry by entry)."""
+    wx, wy, wz, vx, vy, vz = om[0], om[1], om[2], om[3], om[4], om[5]
+    t2 = wx * wx + wy * wy + wz * wz
+    a, b, c = se3_coefficients(t2, small)
+    d = 1 - b * t2
+    e = 1 - c * t2
+    cwv = c * (wx * vx + wy * vy + wz * vz)
+    E = np.empty((4, 4), dtype=g.dtype)
+    E[0, 0] = d + b * wx * wx
+    E[0, 1] = b * wx * wy - a * wz
+    E[0, 2] = b * wx * wz + a * wy
+    E[1, 0] = b * wx * wy + a * wz
+    E[1, 1] = d + b * wy * wy
+    E[1, 2] = b * wy * wz - a * wx
+    E[2, 0] = b * wx * wz - a * wy
+    E[2, 1] = b * wy * wz + a * wx
+    E[2, 2] = d + b * wz * wz
+    E[0, 3] = e * vx + b * (wy * vz - wz * vy) + cwv * wx
+    E[1, 3] = e * vy + b * (wz * vx - wx * vz) + cwv * wy
+    E[2, 3] = e * vz + b * (wx * vy - wy * vx) + cwv * wz
+    E[3, 0] = 0.0
+    E[3, 1] = 0.0
+    E[3, 2] = 0.0
+    E[3, 3] = 1.0
+    for i in range(4):
+        for j in range(4):
+            acc = 0.0
+            for k in range(4):
+                acc += g[i, k] * E[k, j]
+            tmp[i, j] = acc
+    g[:, :] = tmp
+
+
+@_jit
+def pose_one(q, qm, psi0_base, D, tip_tube, sec, h, presc_inc, us_held, presc_local, phi, Qb,
+             S, small, tip, R, psi_tip):
+    """One element's tip pose (mechanics._tip_frame and tip_pose): the 4th-order Magnus steps
+    of every nonempty section, multiplied along the backbone."""
+    N = psi0_base.shape[0]
+    Sp = sec.shape[0]
+    G, n = phi.shape
+    m = G // 2
+    C = 2 + N
+    dt = q.dtype
+    psi0 = np.empty(N, dtype=dt)
+    for j in range(N):
+        psi0[j] = psi0_base[j] + D[j] * (q[j] * qm[j])
+    g = np.eye(4, dtype=dt)
+    tmp = np.empty((4, 4), dtype=dt)
+    om = np.empty(6, dtype=dt)
+    start = psi0.copy()
+    u = np.empty((G, 2), dtype=dt)
+    k3 = 3.0 ** 0.5 / 12.0
+    for kk in range(Sp):
+        off = N + sec[kk] * C * n
+        hk = h[kk]
+        for gg in range(G):
+            ux = 0.0
+            uy = 0.0
+            for p in range(n):
+                ux += q[off + p] * qm[off + p] * phi[gg, p]
+                uy += q[off + n + p] * qm[off + n + p] * phi[gg, p]
+            for j in range(N):
+                loc = 0.0
+                for p in range(n):
+                    loc += q[off + (2 + j) * n + p] * qm[off + (2 + j) * n + p] * Qb[gg, p]
+                psi = start[j] + 0.5 * hk * loc + presc_local[kk, gg, j]
+                cs = math.cos(psi)
+                sn = math.sin(psi)
+                hx = us_held[kk, gg, j, 0]
+                hy = us_held[kk, gg, j, 1]
+                ux += cs * hx - sn * hy
+                uy += sn * hx + cs * hy
+            u[gg, 0] = ux
+            u[gg, 1] = uy
+        hs = hk / m
+        kq = k3 * hs * hs
+        for i in range(m):
+            u1x, u1y = u[2 * i, 0], u[2 * i, 1]
+            u2x, u2y = u[2 * i + 1, 0], u[2 * i + 1, 1]
+            om[0] = 0.5 * hs * (u1x + u2x)
+            om[1] = 0.5 * hs * (u1y + u2y)
+            om[2] = kq * (u1x * u2y - u1y * u2x)
+            om[3] = kq * (u1y - u2y)
+            om[4] = -kq * (u1x - u2x)
+            om[5] = hs
+            right_multiply_exp(g, om, small, tmp)
+        for j in range(N):
+            c0 = q[off + (2 + j) * n] * qm[off + (2 + j) * n]
+            start[j] += hk * c0 + presc_inc[kk, j]
+    angle = 0.0
+    for j in range(N):
+        psi_tip[j] = start[j]
+        angle += start[j] * tip_tube[j]
+    ca = math.cos(angle)
+    sa = math.sin(angle)
+    for i in range(3):
+        tip[i] = g[i, 3]
+        R[i, 0] = g[i, 0] * ca + g[i, 1] * sa
+        R[i, 1] = -g[i, 0] * sa + g[i, 1] * ca
+        R[i, 2] = g[i, 2]
+
+
+@njit(cache=True, nogil=True)
+def _pose_serial(q, qm, psi0, D, tip_tube, sec, h, presc_inc, us_held, presc_local, phi, Qb,
+                 S, small, tip, R, psi_tip):
+    L, B = q.shape[0], q.shape[1]
+    for r in range(L * B):
+        i, b = r // B, r % B
+        pose_one(q[i, b], qm[b], psi0[b], D[b], tip_tube[b], sec[b], h[b], presc_inc[b],
+                 us_held[b], presc_local[b], phi, Qb, S, small, tip[i, b], R[i, b],
+                 psi_tip[i, b])
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _pose_parallel(q, qm, psi0, D, tip_tube, sec, h, presc_inc, us_held, presc_local, phi, Qb,
+                   S, small, tip, R, psi_tip):
+    L, B = q.shape[0], q.shape[1]
+    for r in prange(L * B):
+        i, b = r // B, r % B
+        pose_one(q[i, b], qm[b], psi0[b], D[b], tip_tube[b], sec[b], h[b], presc_inc[b],
+                 us_held[b], presc_local[b], phi, Qb, S, small, tip[i, b], R[i, b],
+                 psi_tip[i, b])
