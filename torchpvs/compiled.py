@@ -444,6 +444,15 @@ def scaled_residual(g, H, Lc, tiny, sc):
     return res
 
 @_jit
+def jacobi_scaled(H, sc, A):
+    """A <- S H S with S = diag(sc) (A may be H)."""
+    n = H.shape[0]
+    for i in range(n):
+        for k in range(n):
+            A[i, k] = sc[i] * H[i, k] * sc[k]
+
+
+@_jit
 def armijo(f, f0, t, slope, eps, tiny):
     resolution = 8 * eps * max(abs(f0), tiny)
     return ((f <= f0 + 1e-4 * t * slope) or (-slope * t <= resolution)
@@ -500,9 +509,7 @@ def newton_one(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, ph
             pd = cholesky(A, L)
             left = False
             if not pd:
-                for i in range(nc):
-                    for k in range(nc):
-                        A[i, k] = sc[i] * H[i, k] * sc[k]
+                jacobi_scaled(H, sc, A)
                 ev, vec = np.linalg.eigh(A)
                 if ev[0] < -1e-8:
                     slope = 0.0
@@ -539,9 +546,8 @@ def newton_one(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, ph
                 U_out = U
             break
         if not minimize:
+            jacobi_scaled(H, sc, A)
             for i in range(nc):
-                for k in range(nc):
-                    A[i, k] = sc[i] * H[i, k] * sc[k]
                 A[i, i] += 1e-14
                 rhs[i] = -sc[i] * g[i]
             if lu_solve(A, rhs, step):
@@ -562,9 +568,7 @@ def newton_one(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, ph
                 A[i, i] += lam / (sc[i] * sc[i])
                 rhs[i] = -g[i]
             if not cholesky(A, L):
-                for i in range(nc):
-                    for k in range(nc):
-                        A[i, k] = sc[i] * H[i, k] * sc[k]
+                jacobi_scaled(H, sc, A)
                 ev0 = np.linalg.eigvalsh(A)[0]
                 lam = max(-ev0, 0.0) * 1.1 + 1e-3 + lam
                 for i in range(nc):
@@ -646,9 +650,8 @@ def step_one(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi,
     else:
         # indefinite (an unstable equilibrium): LU on the Jacobi-scaled system
         scaled_residual(g, H, 1.0, tiny, sc)
+        jacobi_scaled(H, sc, H)
         for i in range(nc):
-            for k in range(nc):
-                H[i, k] = sc[i] * H[i, k] * sc[k]
             rhs[i] = sc[i] * rhs[i]
         good = lu_solve(H, rhs, x)
         for i in range(nc):
