@@ -13,6 +13,7 @@ from hypothesis import HealthCheck, given, settings
 
 import torchpvs as tp
 from torchpvs.forces import (
+    ForceState,
     closed_form_partials,
     envelope_forces_autograd,
     envelope_forces_closed_form,
@@ -20,14 +21,14 @@ from torchpvs.forces import (
 from torchpvs.testing import scene_strategy
 
 
-def _state(eq, q=None) -> dict:
-    """The solution dict the force functions read, from a solved Equilibrium."""
+def _state(eq, q=None) -> ForceState:
+    """The state the force functions read, from a solved Equilibrium."""
     c = eq.context
     info = c.implicit
-    return {"q": eq.q if q is None else q, "D": c.insertion, "alpha": c.rotation,
-            "F": c.tip_force, "M": c.tip_moment, "loaded": info.loaded,
-            "disc": c.discretization, "tab": c.tables, "lay": c.layout,
-            "has_moment": info.has_moment, "with_load": info.with_load}
+    return ForceState(q=eq.q if q is None else q, D=c.insertion, alpha=c.rotation,
+                      F=c.tip_force, M=c.tip_moment, loaded=info.loaded,
+                      disc=c.discretization, tab=c.tables, lay=c.layout,
+                      has_moment=info.has_moment, with_load=info.with_load)
 
 
 def _assert_same(eq, q=None):
@@ -94,11 +95,11 @@ def test_closed_form_second_derivatives_match_double_backward():
     eq = tp.solve(scene, insertion=D, rotation=A,
                   options=tp.SolverOptions(order=2, n_magnus=8, on_failure="ignore"))
     st = _state(eq)
-    tubes, tab, disc = eq.context.tubes, st["tab"], st["disc"]
+    tubes, tab, disc = eq.context.tubes, st.tab, st.disc
     out = []
     for way in ("closed form", "double backward"):
-        q, Dg, Ag = (t.detach().clone().requires_grad_(True) for t in (eq.q, st["D"], st["alpha"]))
-        lay = build_layout(tubes, Dg, Ag, st["F"], st["M"], st["loaded"], disc)
+        q, Dg, Ag = (t.detach().clone().requires_grad_(True) for t in (eq.q, st.D, st.alpha))
+        lay = build_layout(tubes, Dg, Ag, st.F, st.M, st.loaded, disc)
         if way == "closed form":
             tau = closed_form_partials(
                 q, lay, tubes, tab, disc)[0]

@@ -54,9 +54,9 @@ def test_analytic_derivatives_match_autograd(order, scene_name):
     q = torch.randn(B, nq, dtype=dt) * 5 * m
     # The maps work on the compact coordinates (every active one kept): compare there, and
     # check that the left-out ones are inactive.
-    g, H = elastic_grad_hess(compact_q(q, maps["cidx"]), maps)
-    g, H = expand_q(g, maps["cidx"], nq), expand_hessian(H, maps["cidx"], nq)
-    kept = expand_q(torch.ones_like(maps["qmask"]), maps["cidx"], nq)
+    g, H = elastic_grad_hess(compact_q(q, maps.cidx), maps)
+    g, H = expand_q(g, maps.cidx, nq), expand_hessian(H, maps.cidx, nq)
+    kept = expand_q(torch.ones_like(maps.qmask), maps.cidx, nq)
     assert bool((kept >= m).all())
 
     def f(qq, lay_b):
@@ -65,7 +65,7 @@ def test_analytic_derivatives_match_autograd(order, scene_name):
     gA = torch.func.vmap(torch.func.grad(f))(q, lay)
     HA = torch.func.vmap(torch.func.hessian(f))(q, lay)
     mm = m[:, :, None] * m[:, None, :]
-    assert torch.allclose(elastic_energy_maps(compact_q(q, maps["cidx"]), maps), f(q, lay),
+    assert torch.allclose(elastic_energy_maps(compact_q(q, maps.cidx), maps), f(q, lay),
                           rtol=1e-13, atol=1e-15)
     assert ((g - gA) * m).abs().max() <= 1e-12 * gA.abs().max()
     assert ((H - HA) * mm).abs().max() <= 1e-12 * HA.abs().max()
@@ -90,9 +90,9 @@ def test_section_block_is_the_hessian_block_without_angle_basis_terms():
     lay = build_layout(tubes, D, A, zeros, zeros, torch.zeros(B, dtype=torch.bool), disc)
     tab = disc.tables(dt, torch.device("cpu"))
     maps = build_maps(lay, tab, n_coordinates(N, disc.n_basis))
-    qc = torch.randn(B, maps["cidx"].shape[-1], dtype=dt) * 5 * maps["qmask"]
+    qc = torch.randn(B, maps.cidx.shape[-1], dtype=dt) * 5 * maps.qmask
     g, H = elastic_grad_hess(qc, maps)
-    S = maps["h"].shape[1]
+    S = maps.h.shape[1]
     n, C = disc.n_basis, 2 + N
     for k in range(S):
         gk, blk = section_grad_block(qc, maps, torch.full((B,), k))
@@ -139,10 +139,10 @@ def test_cached_node_constants_leave_fields_and_tip_unchanged():
     tab = disc.tables(dt, torch.device("cpu"))
     nq = n_coordinates(2, disc.n_basis)
     q = 3.0 * torch.randn(2, nq, dtype=dt, generator=torch.Generator().manual_seed(0))
-    f0 = node_fields(q, lay, tab["xm"], tab["phi_m"], tab["Q_m"])
-    f1 = node_fields(q, lay, tab["xm"], tab["phi_m"], tab["Q_m"], node_constants(lay, tab["xm"]))
-    for k in f0:
-        assert torch.equal(f0[k], f1[k]), k
+    f0 = node_fields(q, lay, tab.xm, tab.phi_m, tab.Q_m)
+    f1 = node_fields(q, lay, tab.xm, tab.phi_m, tab.Q_m, node_constants(lay, tab.xm))
+    for k, a, b in zip(f0._fields, f0, f1, strict=True):
+        assert torch.equal(a, b), k
     maps = build_maps(lay, tab, nq)
     for a, b in zip(tip_pose(q, lay, tab), tip_pose(q, lay, tab, pose_constants(maps)),
                     strict=True):
@@ -177,7 +177,7 @@ def test_tip_pose_on_nonempty_sections_equals_the_full_pose(seed, three, loaded)
     nq = n_coordinates(N, disc.n_basis)
     q = 3.0 * torch.randn(B, nq, generator=gen, dtype=dt)
     maps = build_maps(lay, tab, nq)
-    assert maps["pose_sec"].shape[-1] <= lay.h.shape[-1]
+    assert maps.pose.sec.shape[-1] <= lay.h.shape[-1]
     for a, b in zip(tip_pose(q, lay, tab), tip_pose(q, lay, tab, pose_constants(maps)),
                     strict=True):
         assert torch.allclose(a, b, rtol=0, atol=1e-14), (a - b).abs().max()

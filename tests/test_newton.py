@@ -16,6 +16,7 @@ import torchpvs as tp
 from torchpvs import batch_linalg
 from torchpvs.batch_linalg import active_index, chunked, compact, compact_scaled, expand, take
 from torchpvs.kernel import EAGER, KERNELS
+from torchpvs.mechanics import Maps
 from torchpvs.newton import (
     Problem,
     _armijo,
@@ -180,14 +181,16 @@ def test_chunked_equals_one_call(monkeypatch):
     the shared ones whole."""
     B, nq = 100, 4
     q = torch.randn(B, nq, dtype=DT, generator=torch.Generator().manual_seed(0))
-    maps = {"a": torch.arange(B, dtype=DT), "phi": torch.ones(3, dtype=DT)}   # phi: shared
-    prob = Problem(lay=None, tab={}, maps=maps, with_load=False, has_moment=False)
+    # a per-element field (h) and a shared one (phi); the others are not read here
+    maps = Maps._make(None for _ in Maps._fields)._replace(
+        h=torch.arange(B, dtype=DT), phi=torch.ones(3, dtype=DT))
+    prob = Problem(lay=None, tab=None, maps=maps, with_load=False, has_moment=False)
     calls = []
 
     def fn(q, prob, scale, *, shift):
         calls.append(q.shape[0])
-        assert prob.maps["phi"].shape == (3,)
-        return q * prob.maps["a"][:, None] * scale[:, None] + shift, prob.maps["a"]
+        assert prob.maps.phi.shape == (3,)
+        return q * prob.maps.h[:, None] * scale[:, None] + shift, prob.maps.h
 
     scale = torch.linspace(1, 2, B, dtype=DT)
     whole = fn(q, prob, scale, shift=1.0)

@@ -152,9 +152,9 @@ def test_discretization_tables():
     disc = Discretization(n_basis=3, n_quad=5, n_magnus=4)
     tab = disc.tables(DT, torch.device("cpu"))
     x, w = gauss_legendre(5)
-    assert torch.equal(tab["xq"], x) and torch.equal(tab["wq"], w)
-    assert tab["phi_q"].shape == tab["Q_q"].shape == (5, 3)
+    assert torch.equal(tab.xq, x) and torch.equal(tab.wq, w)
+    assert tab.phi_q.shape == tab.Q_q.shape == (5, 3)
     off = 0.25 / math.sqrt(3)
     centers = torch.tensor([-0.75, -0.25, 0.25, 0.75], dtype=DT)
-    assert torch.allclose(tab["xm"], torch.stack([centers - off, centers + off], -1).reshape(-1))
-    assert disc.tables(DT, torch.device("cpu"))["xq"] is tab["xq"]        # cached
+    assert torch.allclose(tab.xm, torch.stack([centers - off, centers + off], -1).reshape(-1))
+    assert disc.tables(DT, torch.device("cpu")).xq is tab.xq        # cached

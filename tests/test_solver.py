@@ -305,15 +305,15 @@ def test_kernel_returns_the_residual_and_hessian_at_its_solution():
     ctx = eq.context
     lay, maps = plan.layout(plan.tubes, ctx.insertion, ctx.rotation, ctx.tip_force,
                             ctx.tip_moment, info.loaded, ctx.discretization, eq.q.shape[-1])
-    qc = compact_q(eq.q, maps["cidx"])
-    assert torch.equal(expand_q(qc, maps["cidx"], eq.q.shape[-1]), eq.q)
+    qc = compact_q(eq.q, maps.cidx)
+    assert torch.equal(expand_q(qc, maps.cidx, eq.q.shape[-1]), eq.q)
     g, H = elastic_grad_hess(qc, maps)
-    H.diagonal(dim1=-2, dim2=-1).add_(1.0 - maps["qmask"])
+    H.diagonal(dim1=-2, dim2=-1).add_(1.0 - maps.qmask)
     L = float(lay.ell.amax() + lay.D.amax())
     res, _ = newton.scaled_residual(g, H, torch.tensor([L], dtype=torch.float64))
     assert bool(eq.converged.all()) and float(res) < tp.SolverOptions().tol
     assert float(eq.residual_norm) == pytest.approx(float(res), rel=1e-6, abs=1e-15)
-    H = expand_hessian(H, maps["cidx"], eq.q.shape[-1])
+    H = expand_hessian(H, maps.cidx, eq.q.shape[-1])
     assert torch.allclose(full_hessian(info), H, rtol=0, atol=1e-13 * float(H.abs().max()))
 
 
@@ -415,11 +415,11 @@ def test_default_guess_is_the_torsionless_bending_on_every_active_section():
                                 disc, nq)
         tab = disc.tables(torch.float64, torch.device("cpu"))
         got = default_guess(lay, maps, tab, disc, N)
-        f = node_fields(torch.zeros(B, nq, dtype=torch.float64), lay, tab["xq"], tab["phi_q"],
-                        tab["Q_q"])
+        f = node_fields(torch.zeros(B, nq, dtype=torch.float64), lay, tab.xq, tab.phi_q,
+                        tab.Q_q)
         EI = lay.EI[:, None, None, :] * lay.present[:, :, None, :]
-        u = (EI[..., None] * f["Ru"]).sum(-2) / EI.sum(-1, keepdim=True).clamp(min=1e-30)
-        a = 0.5 * torch.einsum("bsgd,gp,g->bsdp", u, tab["phi_q"], tab["wq"])
+        u = (EI[..., None] * f.Ru).sum(-2) / EI.sum(-1, keepdim=True).clamp(min=1e-30)
+        a = 0.5 * torch.einsum("bsgd,gp,g->bsdp", u, tab.phi_q, tab.wq)
         X = torch.zeros(B, 2 * N, 2 + N, disc.n_basis, dtype=torch.float64)
         X[:, :, :2] = a
         want = torch.cat([torch.zeros(B, N, dtype=torch.float64), X.reshape(B, -1)], -1)
@@ -478,5 +478,5 @@ def test_energy_output_is_the_energy_at_the_returned_coordinates():
         with torch.inference_mode():
             _, maps = plan.layout(plan.tubes, D, r, zero, zero,
                                   torch.zeros(B, dtype=torch.bool), disc, eq.q.shape[-1])
-            fresh = elastic_energy_maps(compact_q(eq.q, maps["cidx"]), maps)
+            fresh = elastic_energy_maps(compact_q(eq.q, maps.cidx), maps)
         assert torch.equal(eq.energy, fresh), (eq.energy - fresh)

@@ -9,7 +9,7 @@ from typing import TYPE_CHECKING, Any, Protocol
 import torch
 
 from .batch_linalg import active_index, compact_scaled, take
-from .forces import equilibrium_forces, paper_actuation
+from .forces import ForceState, equilibrium_forces, paper_actuation
 from .lie import exp_se3
 from .mechanics import (
     angle_offsets,
@@ -23,25 +23,26 @@ from .mechanics import (
 from .newton import stability_threshold
 
 if TYPE_CHECKING:
-    from .implicit import ImplicitContext
+    from .implicit import DifferentiableOutputs, ImplicitContext
     from .options import SolverOptions
+    from .order_control import SolveState
     from .plan import Plan
     from .scene import Scene
-    from .sections import Discretization, Layout, TubeTensors
+    from .sections import Discretization, Layout, Tables, TubeTensors
 
 __all__ = ["Equilibrium", "SolveContext"]
 
 
-def _failure_reason(res, opts, b: int) -> str:
-    text = (f"residual {float(res['residual'][b]):.3g} > tol after {int(res['iterations'][b])} "
-            f"iterations at order {res['order']}")
-    ramp = res.get("ramp")
+def _failure_reason(res: SolveState, opts, b: int) -> str:
+    text = (f"residual {float(res.residual[b]):.3g} > tol after {int(res.iterations[b])} "
+            f"iterations at order {res.order}")
+    ramp = res.ramp
     if ramp is not None and not math.isnan(float(ramp[b])):
         text += (f"; the load ramp ({opts.load_steps} steps) reached {float(ramp[b]):.0%} of "
                  f"the tip load")
-    if res.get("timed_out"):
+    if res.timed_out:
         text += f"; time limit time_limit={opts.time_limit:g} s reached"
-    elif res.get("work_exhausted"):
+    elif res.work_exhausted:
         text += f"; work limit max_total_iter={opts.max_total_iter} reached"
     return text + "; try method='minimize', more max_iter, or a different initial guess"
 
@@ -71,10 +72,11 @@ class Resolver(Protocol):
     gives one (:class:`torchpvs.solver.SolutionResolver`), so that this module and
     :mod:`torchpvs.forces` never import the driver."""
 
-    def near(self, insertion: torch.Tensor, rows: torch.Tensor) -> dict:
+    def near(self, insertion: torch.Tensor, rows: torch.Tensor) -> ForceState:
         """The equilibria at insertions ``insertion (k, N)`` [m] of batch rows ``rows (k,)``,
-        a distance ~1e-7 m from the solution (the one-sided forces at kinks): a state dict
-        with ``q``, ``lay``, ``D``, ``alpha``, ``F``, ``M``, ``loaded``."""
+        a distance ~1e-7 m from the solution (the one-sided forces at kinks), as a
+        :class:`~torchpvs.forces.ForceState` of ``k`` rows (its ``lay`` the layout at
+        ``insertion``, or ``None``)."""
         ...
 
     def again(self, options: SolverOptions, initial: Any = None) -> Equilibrium:
@@ -94,7 +96,8 @@ class SolveContext:
             ``(1, N)`` or ``(B, N)``; ``coef (., N, 3, P)``).
         layout: the sections at the solution's insertions
             (:class:`~torchpvs.sections.Layout`, every field with the leading ``B``).
-        tables: the quadrature and basis tables of ``discretization``.
+        tables: the quadrature and basis tables of ``discretization``
+            (:class:`~torchpvs.sections.Tables`).
         discretization: the basis size, quadrature and Magnus step count of the solution.
         insertion, rotation: ``(B, N)`` [m, rad] the actuation solved at (the rotation
             reduced by whole turns, as solved).
@@ -111,7 +114,7 @@ class SolveContext:
     scene: Scene
     tubes: TubeTensors
     layout: Layout
-    tables: dict[str, torch.Tensor]
+    tables: Tables
     discretization: Discretization
     insertion: torch.Tensor
     rotation: torch.Tensor
@@ -255,83 +258,89 @@ class Equilibrium:
 
     # ------------------------------------------------------------------------------------------
     @classmethod
-    def from_solution(cls, scene, tubes, res, opts, elapsed: float,
-                      diff: dict | None = None, plan=None,
+    def from_solution(cls, scene, tubes, res: SolveState, opts, elapsed: float,
+                      diff: DifferentiableOutputs | None = None, plan=None,
                       resolver: Resolver | None = None) -> Equilibrium:
-        """The solver's constructor: outputs of a converged solve ``res``. Re-solves are
+        """The solver's constructor: outputs of a converged solve ``res``
+        (:class:`~torchpvs.order_control.SolveState`; ``diff``: the same outputs as
+        differentiable functions of the inputs, when a gradient is wanted). Re-solves are
         handed in by the solver as a :class:`Resolver`, so that this module never imports
         it (kept as ``context.resolver``)."""
-        q, lay, tab = res["q"], res["lay"], res["tab"]
+        q, lay, tab = res.q, res.lay, res.tab
         B = q.shape[0]
         qmask = lay.qmask
         with torch.no_grad():
             # Tube angles at the outer tube's end: no node math needed (the prescribed sections'
             # twist is a constant of the layout, kept with the maps).
             w, _, c = split_q(q, lay)
-            psi0, inc = angle_offsets(w, c, lay, res["maps"]["presc_inc"])
+            psi0, inc = angle_offsets(w, c, lay, res.maps.presc_inc)
             psi_l1 = psi0 + (inc * lay.before_l1[..., None]).sum(-2)
             rel = _wrap(psi_l1[:, 1:] - psi_l1[:, :1])
             # Stability on the nondimensional stiffness (see min_stiffness_eigenvalue): positive
             # definite beyond a threshold set by the precision alone. The kernel's saddle test
             # factored exactly that at convergence (its verdict); one Cholesky for the elements
             # without one. The eigenvalue itself is computed only when asked for.
-            verdict = res.get("verdict")
+            verdict = res.verdict
             if verdict is None:
                 verdict = torch.full((B,), -1, dtype=torch.int8, device=q.device)
             stable = verdict == 1
             todo = (verdict < 0).nonzero().flatten()
             if todo.numel():
                 # (on the kernel's compact coordinates: the padding ones carry no stiffness)
-                Hs, active = _scaled_stiffness(res["Hc"][todo], res["maps"]["qmask"][todo])
+                Hs, active = _scaled_stiffness(res.Hc[todo], res.maps.qmask[todo])
                 tau = stability_threshold(Hs.dtype)
                 stable[todo] = torch.linalg.cholesky_ex(
                     Hs - tau * torch.diag_embed(active))[1] == 0
             dofs = qmask.sum(-1).long()
             # the kernel's last evaluation at q made it already (bit for bit), where it did
-            energy = res.get("energy")
+            energy = res.energy
             if energy is None or not bool(torch.isfinite(energy).all()):
-                energy = elastic_energy_maps(compact_q(q, res["maps"]["cidx"]), res["maps"])
-            if res["with_load"]:
-                energy = energy - (lay.force * res["tip"]).sum(-1)
+                energy = elastic_energy_maps(compact_q(q, res.maps.cidx), res.maps)
+            if res.with_load:
+                energy = energy - (lay.force * res.tip).sum(-1)
         forces = torques = insert_side = None
-        kink = torch.zeros_like(res["D"], dtype=torch.bool)
+        kink = torch.zeros_like(res.D, dtype=torch.bool)
         paper = opts.compute_forces and getattr(opts, "force_model", "energy") == "paper"
+        if opts.compute_forces:
+            state = ForceState(q=q, D=res.D, alpha=res.alpha, F=res.F, M=res.M,
+                               loaded=res.loaded, lay=lay, tab=tab, disc=res.disc,
+                               with_load=res.with_load, has_moment=res.has_moment)
         if paper:
-            forces, torques = paper_actuation(tubes, res)
+            forces, torques = paper_actuation(tubes, state)
             insert_side = forces.clone()
         elif opts.compute_forces:
             cache = None if plan is None else (
-                lambda name, compute: plan.cached(res["disc"], lay, name, compute))
-            forces, torques, insert_side, kink = equilibrium_forces(tubes, res, resolver.near,
+                lambda name, compute: plan.cached(res.disc, lay, name, compute))
+            forces, torques, insert_side, kink = equilibrium_forces(tubes, state, resolver.near,
                                                                     cache=cache)
-        conv = res["converged"]
+        conv = res.converged
         # A verdict needs an equilibrium: where the solve did not converge, the state is not
         # one, and its Hessian's sign says nothing about stability (a precurvature of 1e6 1/m
         # reported converged=False, stable=True).
         conv_list = conv.tolist()
         reason = tuple("converged" if conv_list[b] else _failure_reason(res, opts, b)
                        for b in range(B))
-        err = res.get("error_estimate", torch.full((B,), float("nan"), dtype=q.dtype,
-                                                   device=q.device))
+        err = res.error_estimate
+        if err is None:
+            err = torch.full((B,), float("nan"), dtype=q.dtype, device=q.device)
         ctx = SolveContext(scene=scene, tubes=tubes, layout=lay, tables=tab,
-                           discretization=res["disc"], insertion=res["D"],
-                           rotation=res["alpha"], tip_force=res["F"], tip_moment=res["M"],
-                           implicit=res["implicit_info"], options=opts, plan=plan,
-                           resolver=resolver)
-        tip, R = res["tip"], res["R"]
+                           discretization=res.disc, insertion=res.D, rotation=res.alpha,
+                           tip_force=res.F, tip_moment=res.M, implicit=res.implicit_info,
+                           options=opts, plan=plan, resolver=resolver)
+        tip, R = res.tip, res.R
         if diff is not None:  # differentiable versions of the same values (implicit backward)
-            q, tip, R, energy = diff["q"], diff["tip"], diff["R"], diff["energy"]
-            rel = _wrap(diff["rel_unwrapped"])
+            q, tip, R, energy = diff.q, diff.tip, diff.R, diff.energy
+            rel = _wrap(diff.rel_unwrapped)
             if not paper:
-                torques = diff["torques"]
+                torques = diff.torques
             if forces is not None and not paper:  # keep the one-sided value (no gradient) at kinks
-                forces = torch.where(kink, forces, diff["forces"])
+                forces = torch.where(kink, forces, diff.forces)
         return cls(q=q, tip_position=tip, tip_rotation=R,
                    relative_rotation_at_outer_tip=rel, energy=energy, actuation_forces=forces,
                    actuation_torques=torques, actuation_forces_insertion=insert_side,
-                   force_kink=kink, converged=conv, residual_norm=res["residual"],
-                   iterations=res["iterations"], stable=stable & conv,
-                   dofs=dofs, order=res["order"], error_estimate=err,
+                   force_kink=kink, converged=conv, residual_norm=res.residual,
+                   iterations=res.iterations, stable=stable & conv,
+                   dofs=dofs, order=res.order, error_estimate=err,
                    accuracy_met=err <= opts.accuracy, solve_time_s=elapsed,
                    reason=reason, context=ctx)
 
@@ -366,7 +375,7 @@ class Equilibrium:
             from .basis import legendre_basis
             phi, Qb = legendre_basis(xi_all, self.context.discretization.n_basis)
             f = node_fields(q, lay, xi_all, phi, Qb)
-            u = f["u"].reshape(B, -1, points, 2 * m, 2)                        # (B, S, K, 2m, 2)
+            u = f.u.reshape(B, -1, points, 2 * m, 2)                        # (B, S, K, 2m, 2)
             u = torch.gather(u, 1, k[:, None, :, None, None].expand(B, 1, points, 2 * m, 2))[:, 0]
             steps = exp_se3(magnus_twists(u.reshape(B, points, m, 2, 2), x / m))
             g = torch.gather(poses, 1, k[..., None, None].expand(B, points, 4, 4))

@@ -15,15 +15,59 @@ from typing import NamedTuple
 
 import torch
 
-from .mechanics import node_constants, node_fields, poly, potential, sum_dim, tip_pose
-from .sections import build_layout, tube_rows
+from .mechanics import (
+    NodeConstants,
+    node_constants,
+    node_fields,
+    poly,
+    potential,
+    sum_dim,
+    tip_pose,
+)
+from .sections import Discretization, Layout, Tables, build_layout, tube_rows
 
-__all__ = ["closed_form_partials", "envelope_forces", "envelope_forces_autograd",
+__all__ = ["ForceState", "closed_form_partials", "envelope_forces", "envelope_forces_autograd",
            "envelope_forces_closed_form", "equilibrium_forces", "paper_actuation",
            "paper_scope_check"]
 
 
-def envelope_forces(tubes, res):
+class ForceState(NamedTuple):
+    """What the force functions read of an equilibrium (or of any coordinates at an actuation
+    and load: the envelope partials hold at fixed ``q``): ``B`` elements, ``N`` tubes, ``nq``
+    padded coordinates. :meth:`torchpvs.Equilibrium.from_solution` makes one of the solve's
+    :class:`~torchpvs.order_control.SolveState`, the solver's re-solves near it
+    (:meth:`torchpvs.solver.SolutionResolver.near`) one per kink side.
+
+    Attributes:
+        q: ``(B, nq)`` [1/m] the coordinates.
+        D, alpha: ``(B, N)`` [m, rad] the insertions and base rotations.
+        F, M: ``(B, 3)`` [N, N·m] the tip load, base frame.
+        loaded: ``(B,)`` bool, elements with load coordinates.
+        lay: the :class:`~torchpvs.sections.Layout` at ``D`` where known, else ``None`` (or a
+            layout of other insertions: then it is built again).
+        tab: the :class:`~torchpvs.sections.Tables` of ``disc``.
+        disc: the :class:`~torchpvs.sections.Discretization` of ``q``.
+        with_load: the potential includes the tip load's work (the reverse pass is used).
+        has_moment: a tip moment is modelled.
+        node_constants: the layout's :class:`~torchpvs.mechanics.NodeConstants` at
+            ``tab.xq`` where known (kept with the plan's layout), else ``None``.
+    """
+
+    q: torch.Tensor
+    D: torch.Tensor
+    alpha: torch.Tensor
+    F: torch.Tensor
+    M: torch.Tensor
+    loaded: torch.Tensor
+    lay: Layout | None
+    tab: Tables
+    disc: Discretization
+    with_load: bool
+    has_moment: bool
+    node_constants: NodeConstants | None = None
+
+
+def envelope_forces(tubes, res: ForceState):
     """``tau_D = dU*/dD``, ``tau_alpha = dU*/dalpha`` by the envelope theorem: at an equilibrium
     the total derivative equals the partial derivative at fixed coordinates ``q`` (the sections
     move with ``D``, the coordinates are strains on the normalized section coordinate).
@@ -32,31 +76,30 @@ def envelope_forces(tubes, res):
     (:func:`envelope_forces_closed_form`); with a load, whose work moves with ``D`` through the
     whole Magnus chain, by a reverse pass through the layout and the potential
     (:func:`envelope_forces_autograd`, the reference the closed form is tested against)."""
-    if res["with_load"]:
+    if res.with_load:
         return envelope_forces_autograd(tubes, res)
     return envelope_forces_closed_form(tubes, res)
 
 
-def envelope_forces_autograd(tubes, res):
+def envelope_forces_autograd(tubes, res: ForceState):
     """:func:`envelope_forces` by reverse-mode autograd through ``build_layout`` and the
     potential (any load)."""
     # A reverse pass needs ordinary tensors: the solve may run in inference mode, whose tensors
     # autograd cannot save (clones made outside it are ordinary).
     with torch.inference_mode(False), torch.enable_grad():
-        q, F, M, loaded = (res[k].detach().clone() for k in ("q", "F", "M", "loaded"))
+        q, F, M, loaded = (t.detach().clone() for t in (res.q, res.F, res.M, res.loaded))
         # (tube rows of a batch of robots may have been indexed in inference mode)
-        tubes = type(tubes)(**{f: getattr(tubes, f).detach().clone()
-                               for f in tubes.__dataclass_fields__})
-        D = res["D"].detach().clone().requires_grad_(True)
-        A = res["alpha"].detach().clone().requires_grad_(True)
-        lay = build_layout(tubes, D, A, F, M, loaded, res["disc"])
-        R0 = tip_pose(q, lay, res["tab"])[1].detach() if res["has_moment"] else None
-        U = potential(q, lay, res["tab"], R0, res["with_load"])
+        tubes = tubes.map(lambda t: t.detach().clone())
+        D = res.D.detach().clone().requires_grad_(True)
+        A = res.alpha.detach().clone().requires_grad_(True)
+        lay = build_layout(tubes, D, A, F, M, loaded, res.disc)
+        R0 = tip_pose(q, lay, res.tab)[1].detach() if res.has_moment else None
+        U = potential(q, lay, res.tab, R0, res.with_load)
         gD, gA = torch.autograd.grad(U.sum(), (D, A))
     return gD.detach(), gA.detach()
 
 
-def envelope_forces_closed_form(tubes, res):
+def envelope_forces_closed_form(tubes, res: ForceState):
     """:func:`envelope_forces` for elements without tip load, in closed form: the partial
     derivatives at fixed ``q`` of the stored energy (docs/physics.md)
 
@@ -72,16 +115,15 @@ def envelope_forces_closed_form(tubes, res):
     (a kink) the derivative follows torch's rules for ``sort``, ``clamp`` and ``minimum``, as the
     reverse pass does. Returns ``(tau_D, tau_alpha)``, ``(B, N)`` [N, N·m]."""
     with torch.no_grad():
-        D = res["D"]
-        lay = res.get("lay")
+        D = res.D
+        lay = res.lay
         if lay is None or lay.D.shape != D.shape or not torch.equal(lay.D, D):
-            lay = build_layout(tubes, D, res["alpha"], res["F"], res["M"], res["loaded"],
-                               res["disc"])
-        return closed_form_partials(res["q"], lay, tubes, res["tab"], res["disc"],
-                                    res.get("node_constants"))
+            lay = build_layout(tubes, D, res.alpha, res.F, res.M, res.loaded, res.disc)
+        return closed_form_partials(res.q, lay, tubes, res.tab, res.disc, res.node_constants)
 
 
-def closed_form_partials(q, lay, tubes, tab, disc, const=None):
+def closed_form_partials(q, lay: Layout, tubes, tab: Tables, disc: Discretization,
+                         const: NodeConstants | None = None):
     """The body of :func:`envelope_forces_closed_form` on a layout ``lay`` of the insertions:
     ``(dU/dD, dU/dalpha)`` at ``q``, elastic energy only. Differentiable: with ``lay`` built
     from insertions and rotations that require grad (and ``q`` too), one reverse pass gives the
@@ -91,7 +133,7 @@ def closed_form_partials(q, lay, tubes, tab, disc, const=None):
     gradient with respect to the layout then flows through them)."""
     D = lay.D
     B, N = D.shape
-    f = node_fields(q, lay, tab["xq"], tab["phi_q"], tab["Q_q"], const)
+    f = node_fields(q, lay, tab.xq, tab.phi_q, tab.Q_q, const)
     dt, dev = q.dtype, q.device
     L, Ls = tubes.length.expand(B, N), tubes.straight.expand(B, N)
     coef = lay.coef                                                   # (B, N, 3, P)
@@ -117,22 +159,22 @@ def closed_form_partials(q, lay, tubes, tab, disc, const=None):
     tg = (Dm - Ls).clamp(min=0.0)
     u_g = poly(coef, tg)                                             # (B, N, 3) at t_guide
     # Node quantities (B, S, Q, ...): weights, densities and partial derivatives.
-    xq, wq = tab["xq"], tab["wq"]
+    xq, wq = tab.xq, tab.wq
     W = lay.W                                                        # (B, S, Q)
     EIp = lay.EI[:, None, None, :] * lay.present[:, :, None, :]      # (B, S, 1, N)
     GJp = lay.GJ[:, None, None, :] * lay.present[:, :, None, :]
-    ux, uy = f["u"].unbind(-1)
-    Rx, Ry = f["Ru"].unbind(-1)
+    ux, uy = f.u.unbind(-1)
+    Rx, Ry = f.Ru.unbind(-1)
     ex, ey = ux[..., None] - Rx, uy[..., None] - Ry                  # (B, S, Q, N)
-    tors = f["dpsi"] - f["ustar"][..., 2]
+    tors = f.dpsi - f.ustar[..., 2]
     dens = sum_dim(0.5 * EIp * (ex * ex + ey * ey) + 0.5 * GJp * tors * tors, -1)
     gpsi = W[..., None] * EIp * (Ry * ux[..., None] - Rx * uy[..., None])   # W de/dpsi
     # de/du*_j . du*_j/dt, with du*/dt the derivative of the precurvature polynomial.
     if P > 1:
         dcoef = coef[..., 1:] * torch.arange(1, P, dtype=dt, device=dev)
-        t = f["s"][..., None] - lay.tau[:, None, None, :]            # (B, S, Q, N)
+        t = f.s[..., None] - lay.tau[:, None, None, :]               # (B, S, Q, N)
         dus = poly(dcoef[:, None, None], t) * lay.curved[:, :, None, :, None]
-        cs, sn = torch.cos(f["psi"]), torch.sin(f["psi"])
+        cs, sn = torch.cos(f.psi), torch.sin(f.psi)
         px, py = cs * dus[..., 0] - sn * dus[..., 1], sn * dus[..., 0] + cs * dus[..., 1]
         gstar = -W[..., None] * (EIp * (ex * px + ey * py) + GJp * tors * dus[..., 2])
     else:
@@ -144,7 +186,7 @@ def closed_form_partials(q, lay, tubes, tab, disc, const=None):
     # Angles: psi_kij = psi0_j + D_j w_j + sum_{k'<k} h_k' c_k'j0 + h_k/2 sum_p Q_ip c_kjp.
     n = disc.n_basis
     c = (q[:, N:] * lay.qmask[:, N:]).reshape(B, -1, 2 + N, n)[:, :, 2:, :]   # (B, S, N, n)
-    loc = 0.5 * (c @ tab["Q_q"].transpose(-1, -2)).transpose(-1, -2)  # (B, S, Q, N): /h
+    loc = 0.5 * (c @ tab.Q_q.transpose(-1, -2)).transpose(-1, -2)  # (B, S, Q, N): /h
     step = dh[:, :, None, :] * c[:, :, :, :1]                           # (B, S, N_j, N_l)
     before = torch.cumsum(step, 1) - step           # sum over k' < k of dh_k'l c_k'j0
     g0 = w + u_g[..., 2] * dtg                                       # (B, N)
@@ -194,7 +236,7 @@ def paper_scope_check(tubes, D: torch.Tensor, loaded: torch.Tensor, tol: float =
                          "(L_1 - D_1 <= L_2 - D_2), as in the paper's Fig. 3")
 
 
-def paper_actuation(tubes, res, tol: float = 1e-12):
+def paper_actuation(tubes, res: ForceState, tol: float = 1e-12):
     """The paper's eq. (41) (Renda et al., RA-L 2021) evaluated on the equilibrium, for
     ``N <= 2`` tubes without tip load (``force_model="paper"``; docs/actuation-forces.md).
 
@@ -216,11 +258,10 @@ def paper_actuation(tubes, res, tol: float = 1e-12):
     from .basis import gauss_legendre, legendre_basis
     from .mechanics import poly
 
-    q, lay, disc = res["q"].detach(), res["lay"], res["disc"]
-    D = res["D"]
+    q, lay, disc = res.q.detach(), res.lay, res.disc
+    D = res.D
     B, N = D.shape
-    paper_scope_check(tubes, D, (res["F"].abs().sum(-1) > 0) | (res["M"].abs().sum(-1) > 0),
-                      tol)
+    paper_scope_check(tubes, D, (res.F.abs().sum(-1) > 0) | (res.M.abs().sum(-1) > 0), tol)
     coef = tubes.coef.expand(B, N, 3, tubes.coef.shape[-1])
 
     n_q = disc.n_basis * 2 + coef.shape[-1] + 6
@@ -230,7 +271,7 @@ def paper_actuation(tubes, res, tol: float = 1e-12):
     phi, Qb = legendre_basis(x_all, disc.n_basis)
     with torch.no_grad():
         f = node_fields(q, lay, x_all, phi, Qb)
-        Ru, dpsi, psi = f["Ru"], f["dpsi"], f["psi"]                  # (B, S, G+2, ...)
+        Ru, dpsi, psi = f.Ru, f.dpsi, f.psi                           # (B, S, G+2, ...)
         G = xg.shape[0]
         present = lay.present > 0.5                                 # (B, S, N)
         # Unloaded: the internal moment vanishes on the whole free part, so the bending is the
@@ -258,7 +299,7 @@ def paper_actuation(tubes, res, tol: float = 1e-12):
         P = coef.shape[-1]
         dcoef = coef[:, 1, :, 1:] * torch.arange(1, P, dtype=q.dtype, device=q.device) \
             if P > 1 else torch.zeros_like(coef[:, 1, :, :1])
-        t = f["s"][..., :G] - lay.tau[:, None, None, 1]            # (B, S, G)
+        t = f.s[..., :G] - lay.tau[:, None, None, 1]               # (B, S, G)
         dk = poly(dcoef[:, None, None, None], t[..., None])[..., 0, :2]   # (B, S, G, 2)
         c, sn = torch.cos(psi[..., :G, 1]), torch.sin(psi[..., :G, 1])
         Rdk = torch.stack([c * dk[..., 0] - sn * dk[..., 1], sn * dk[..., 0] + c * dk[..., 1]],
@@ -344,15 +385,16 @@ def _kink_plan(tubes, D: torch.Tensor, delta: float, tol: float) -> KinkPlan:
     return KinkPlan(kink, blocked, rows_b, rows_j, sel, sj, Dn)
 
 
-def equilibrium_forces(tubes, res, resolve, delta: float = 1e-7, tol: float = 1e-9,
+def equilibrium_forces(tubes, res: ForceState, resolve, delta: float = 1e-7, tol: float = 1e-9,
                        cache=None):
-    """Actuation forces and torques ``(B, N)`` at the equilibrium ``res`` (:func:`actuation`),
+    """Actuation forces and torques ``(B, N)`` at the equilibrium ``res``,
     with one-sided insertion forces where ``U*(D_j)`` has a kink: material of tube ``j`` changing
     kind exactly at the orifice -- its base (``D_j = 0``: the guide torsion appears), its
     straight-to-curved transition (``D_j = Ls_j``: curvature enters the guide) or its end
     (``D_j = L_j``) -- or a cut that moves with ``D_j`` meeting another tube's. There the
     derivative differs for insertion and retraction. Each side is taken at an equilibrium
-    ``delta`` away on that side (where ``U*`` is smooth), from ``resolve`` (usually no solve; a
+    ``delta`` away on that side (where ``U*`` is smooth), from ``resolve(insertions, rows) ->``
+    :class:`ForceState` (usually no solve; a
     step for the coordinates of a section of length ``delta`` that appears, or at most one
     Newton step); the error is ``O(delta)``. The equilibrium and every kink side go
     through ONE envelope-theorem evaluation (in closed form without tip load, else one reverse
@@ -364,22 +406,23 @@ def equilibrium_forces(tubes, res, resolve, delta: float = 1e-7, tol: float = 1e
     Returns ``(forces = retraction side, torques, insertion side, kink mask)``, all ``(B, N)``;
     the insertion side is NaN where the carriage cannot move in (blocked by the next base).
     """
-    D = res["D"]
+    D = res.D
     B = D.shape[0]
+
     def analyse():
         return _kink_plan(tubes, D, delta, tol)
 
     kp = analyse() if cache is None else cache(f"kinks_{delta}_{tol}", analyse)
     kink, blocked = kp.kink.clone(), kp.blocked      # the cached mask is not handed out
 
-    def with_constants(state, name):
+    def with_constants(state: ForceState, name: str) -> ForceState:
         # The closed form's node constants depend on the layouts only, which the cache keeps
         # (the sides' layout follows from the solve's: same insertions, same kink plan).
-        if cache is None or state["with_load"] or state["lay"].D.shape != state["D"].shape:
+        if cache is None or state.with_load or state.lay.D.shape != state.D.shape:
             return state
-        xq = state["tab"]["xq"]
-        return dict(state, node_constants=cache(
-            f"{name}_{delta}_{tol}", lambda: node_constants(state["lay"], xq)))
+        xq = state.tab.xq
+        return state._replace(node_constants=cache(
+            f"{name}_{delta}_{tol}", lambda: node_constants(state.lay, xq)))
 
     if kp.sel is None:
         forces, torques = envelope_forces(tubes, with_constants(res, "force_nodes"))
@@ -388,11 +431,13 @@ def equilibrium_forces(tubes, res, resolve, delta: float = 1e-7, tol: float = 1e
         return forces, torques, insertion, kink
     rows_b, rows_j, sel, sj, Dn = kp.rows_b, kp.rows_j, kp.sel, kp.sj, kp.Dn
     side = resolve(Dn, sel)
-    both = dict(res, **{k: torch.cat([res[k], side[k]]) for k in
-                        ("q", "D", "alpha", "F", "M", "loaded")})
-    if "lay" in side:     # the sides' layout, built by the re-solve: no second build
-        both["lay"] = type(res["lay"])(*(torch.cat(pair) for pair in zip(res["lay"], side["lay"],
-                                                                         strict=True)))
+    both = res._replace(q=torch.cat([res.q, side.q]), D=torch.cat([res.D, side.D]),
+                        alpha=torch.cat([res.alpha, side.alpha]), F=torch.cat([res.F, side.F]),
+                        M=torch.cat([res.M, side.M]),
+                        loaded=torch.cat([res.loaded, side.loaded]), node_constants=None)
+    if side.lay is not None:     # the sides' layout, built by the re-solve: no second build
+        both = both._replace(lay=type(res.lay)(*(torch.cat(pair) for pair in
+                                                 zip(res.lay, side.lay, strict=True))))
     tubes_both = tube_rows(tubes, torch.cat([torch.arange(B, device=sel.device), sel]))
     allf, allt = envelope_forces(tubes_both, with_constants(both, "force_nodes_sides"))
     forces, torques, vals = allf[:B], allt[:B], allf[B:][torch.arange(len(sel)), sj]

@@ -19,15 +19,16 @@ from __future__ import annotations
 
 import warnings
 from dataclasses import dataclass, fields, replace
+from typing import NamedTuple
 
 import torch
 
 from .batch_linalg import active_index, compact
 from .mechanics import expand_hessian, potential, tip_pose
-from .sections import Discretization, TubeTensors, build_layout
+from .sections import Discretization, Tables, TubeTensors, build_layout
 
-__all__ = ["ImplicitContext", "ImplicitEquilibrium", "NearSingularStiffnessWarning",
-           "full_hessian"]
+__all__ = ["DifferentiableOutputs", "ImplicitContext", "ImplicitEquilibrium",
+           "NearSingularStiffnessWarning", "full_hessian"]
 
 
 class NearSingularStiffnessWarning(RuntimeWarning):
@@ -61,7 +62,7 @@ class ImplicitContext:
     qmask: torch.Tensor
     loaded: torch.Tensor
     disc: Discretization
-    tab: dict
+    tab: Tables
     with_load: bool
     has_moment: bool
     ridge: float
@@ -239,8 +240,30 @@ def _rotation_jacobian(q_star, info: ImplicitContext, D, alpha, F, M,
     return torch.func.vmap(torch.func.jacrev(rotvec))(q, lay, q)
 
 
+class DifferentiableOutputs(NamedTuple):
+    """The outputs of a solve as differentiable functions of its inputs
+    (:func:`differentiable_outputs`; ``B`` elements, ``N`` tubes, ``nq`` coordinates).
+
+    Attributes:
+        q: ``(B, nq)`` [1/m] the equilibrium coordinates (the implicit ``q*``).
+        tip: ``(B, 3)`` [m] the tip position; ``R``: ``(B, 3, 3)`` the tip frame.
+        energy: ``(B,)`` [J] stored elastic energy minus the potential of the tip force.
+        forces: ``(B, N)`` [N] ``dU*/dD``; ``torques``: ``(B, N)`` [N·m] ``dU*/dalpha``.
+        rel_unwrapped: ``(B, N-1)`` [rad] the tube angles relative to the outer tube's at its
+            distal end, not wrapped.
+    """
+
+    q: torch.Tensor
+    tip: torch.Tensor
+    R: torch.Tensor
+    energy: torch.Tensor
+    forces: torch.Tensor
+    torques: torch.Tensor
+    rel_unwrapped: torch.Tensor
+
+
 def differentiable_outputs(q_star: torch.Tensor, info: ImplicitContext, D, alpha, F, M,
-                           tubes: TubeTensors) -> dict[str, torch.Tensor]:
+                           tubes: TubeTensors) -> DifferentiableOutputs:
     """Every output as a differentiable function of the inputs, through the implicit ``q*``."""
     from .mechanics import node_fields
 
@@ -258,8 +281,8 @@ def differentiable_outputs(q_star: torch.Tensor, info: ImplicitContext, D, alpha
     U = potential(q, lay, tab, R0, info.with_load)
     energy = potential(q, lay, tab, None, info.with_load)
     tau_D, tau_A = torch.autograd.grad(U.sum(), (dD, dA), create_graph=True)
-    f = node_fields(q, lay, tab["xq"], tab["phi_q"], tab["Q_q"])
-    psi_l1 = f["psi0"] + (f["inc"] * lay.before_l1[..., None]).sum(-2)
+    f = node_fields(q, lay, tab.xq, tab.phi_q, tab.Q_q)
+    psi_l1 = f.psi0 + (f.inc * lay.before_l1[..., None]).sum(-2)
     rel = psi_l1[:, 1:] - psi_l1[:, :1]
-    return {"q": q, "tip": p, "R": R, "energy": energy, "forces": tau_D, "torques": tau_A,
-            "rel_unwrapped": rel}
+    return DifferentiableOutputs(q=q, tip=p, R=R, energy=energy, forces=tau_D, torques=tau_A,
+                                 rel_unwrapped=rel)

@@ -206,11 +206,10 @@ def _implicit_rows(eq, rows: torch.Tensor, *, stiffness: bool, tip: bool) -> tor
     pick = torch.eye(m, dtype=q.dtype, device=q.device).repeat(B, 1)        # (B m, m)
     with torch.enable_grad():
         out = differentiable_outputs(q, info, D, A, F, M, tubes)
-        parts = [torch.cat([out["forces"], out["torques"]], -1)] if stiffness else []
+        parts = [torch.cat([out.forces, out.torques], -1)] if stiffness else []
         if tip:
-            R0 = out["R"].detach()
-            parts.append(torch.cat([out["tip"], skew_vee(out["R"] @ R0.transpose(-1, -2))],
-                                   -1))
+            R0 = out.R.detach()
+            parts.append(torch.cat([out.tip, skew_vee(out.R @ R0.transpose(-1, -2))], -1))
         GD, GA = torch.autograd.grad((torch.cat(parts, -1) * pick).sum(), (D, A))
     return torch.cat([GD, GA], -1).reshape(B, m, n)
 

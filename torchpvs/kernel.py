@@ -26,6 +26,7 @@ import torch
 from . import compiled
 from .batch_linalg import active_index, chunked, compact, compact_scaled, expand, spd_solve, take
 from .mechanics import (
+    Maps,
     compact_q,
     expand_q,
     section_grad_block,
@@ -34,7 +35,7 @@ from .mechanics import (
     tip_pose,
 )
 from .newton import NewtonResult, Problem, derivatives, newton, scaled_residual
-from .sections import Discretization, n_coordinates
+from .sections import Discretization, Layout, Tables, n_coordinates
 
 __all__ = ["COMPILED", "EAGER", "KERNELS", "Kernel", "default_guess", "new_section_step",
            "newton_step"]
@@ -47,7 +48,9 @@ class Kernel(NamedTuple):
     unchanged, never NaN.
 
     Attributes:
-        guess: ``guess(lay, maps, tab, disc, N) -> q0 (B, nq)``, the cold-start coordinates.
+        guess: ``guess(lay, maps, tab, disc, N) -> q0 (B, nq)``, the cold-start coordinates
+            (:class:`~torchpvs.sections.Layout`, :class:`~torchpvs.mechanics.Maps`,
+            :class:`~torchpvs.sections.Tables`).
         solve: ``solve(q0, prob, L_char, *, method, tol, max_iter, deadline) ->``
             :class:`~torchpvs.newton.NewtonResult`: the equilibrium from ``q0`` (``L_char
             (B,)`` [m] the residual's length scale, ``SolverOptions.tol``).
@@ -57,7 +60,8 @@ class Kernel(NamedTuple):
             coordinates ``new`` of a vanishing section solved for with the rest held.
         pose: ``pose(q, lay, tab, constants) -> (tip (.., B, 3), R (.., B, 3, 3), extra)``:
             the tip pose of :func:`torchpvs.mechanics.tip_pose` (``q`` may carry leading
-            dims).
+            dims; ``constants`` the :class:`~torchpvs.mechanics.PoseConstants` of
+            ``maps.pose`` or of finer Magnus nodes).
         spd_solve: ``spd_solve(H (B, n, n), rhs (B, n)) -> (x, ok)``: ``H^-1 rhs`` for the
             stiffness at a solution (the rotation predictor).
     """
@@ -75,13 +79,13 @@ def newton_step(q: torch.Tensor, prob: Problem) -> tuple[torch.Tensor, torch.Ten
     as at an unstable equilibrium). Returns the new coordinates (``q`` where the step failed)
     and the success mask. The step runs on the compact coordinates (mechanics.build_maps);
     large batches go in cache-sized chunks of them (see batch_linalg.CHUNK_BYTES)."""
-    cidx = prob.maps["cidx"]
+    cidx = prob.maps.cidx
     qc, ok = chunked(_one_newton_step, compact_q(q, cidx), prob)
     return torch.where(ok[:, None], expand_q(qc, cidx, q.shape[-1]), q), ok
 
 
 def _one_newton_step(q, prob: Problem):
-    qmask = prob.maps["qmask"]
+    qmask = prob.maps.qmask
     g, H = derivatives(q, prob)
     H.diagonal(dim1=-2, dim2=-1).add_(1.0 - qmask)
     act = active_index(qmask)
@@ -120,10 +124,10 @@ def new_section_step(q: torch.Tensor, prob: Problem, new: torch.Tensor,
     in one compact section, no guide twist among them, the section shorter than
     ``_VANISHING x length``, its block positive definite); other rows are returned unchanged."""
     maps = prob.maps
-    cidx = maps["cidx"]
+    cidx = maps.cidx
     B, nq = q.shape
-    N = maps["bvec"].shape[2]
-    S = maps["h"].shape[1]
+    N = maps.bvec.shape[2]
+    S = maps.h.shape[1]
     qc = compact_q(q, cidx)
     cn = (qc.shape[-1] - N) // S
     newc = torch.gather(new, 1, cidx)
@@ -137,14 +141,15 @@ def new_section_step(q: torch.Tensor, prob: Problem, new: torch.Tensor,
     L, info = torch.linalg.cholesky_ex(A)
     d = -torch.cholesky_solve(gs[..., None], L)[..., 0] * m
     ok = ((has.sum(-1) == 1) & ~newc[:, :N].any(-1) & (info == 0) & torch.isfinite(d).all(-1)
-          & (maps["h"][rows, sec] <= _VANISHING * length))
+          & (maps.h[rows, sec] <= _VANISHING * length))
     X = qc[:, N:].reshape(B, S, cn)
     X[rows, sec] = X[rows, sec] + d
     q1 = expand_q(torch.cat([qc[:, :N], X.reshape(B, -1)], -1), cidx, nq)
     return torch.where(ok[:, None], q1, q), ok
 
 
-def default_guess(lay, maps: dict, tab: dict, disc: Discretization, N: int) -> torch.Tensor:
+def default_guess(lay: Layout, maps: Maps, tab: Tables, disc: Discretization,
+                  N: int) -> torch.Tensor:
     """Torsionless guess: tubes keep their base angles, the backbone bends with the
     stiffness-weighted average of the rotated precurvatures (exact without torsion, eq. 31).
     Built on the kernel's compact sections (``maps``, :func:`torchpvs.mechanics.build_maps`):
@@ -152,22 +157,22 @@ def default_guess(lay, maps: dict, tab: dict, disc: Discretization, N: int) -> t
     the prescribed sections before them."""
     B = lay.h.shape[0]
     nq = n_coordinates(N, disc.n_basis)
-    cidx = maps["cidx"]
-    S = maps["h"].shape[1]
+    cidx = maps.cidx
+    S = maps.h.shape[1]
     n = disc.n_basis
-    start = start_angles(lay.psi0, maps["presc_inc"])                 # (B, S_full, N), q = 0
+    start = start_angles(lay.psi0, maps.presc_inc)                 # (B, S_full, N), q = 0
     sec = torch.div(cidx[:, N::(2 + N) * n] - N, (2 + N) * n, rounding_mode="floor")
     psi = torch.gather(start, 1, sec[:, :, None].expand(B, S, N))[:, :, None, :]
-    us = maps["ustar"]                                                # (B, S, Q, N, 3)
+    us = maps.ustar                                                # (B, S, Q, N, 3)
     cs, sn = torch.cos(psi), torch.sin(psi)
     Rx = cs * us[..., 0] - sn * us[..., 1]
     Ry = sn * us[..., 0] + cs * us[..., 1]
     # stiffness-weighted (present tubes): EIw / EIws, the node weights cancel. Padded compact
     # sections have EIws = 0: the clamp must be representable in the dtype (1e-300 is 0 in
     # float32, and 0 / 0 made the whole guess NaN).
-    wgt = maps["EIw"] / maps["EIws"][..., None].clamp(min=torch.finfo(maps["EIws"].dtype).tiny)
+    wgt = maps.EIw / maps.EIws[..., None].clamp(min=torch.finfo(maps.EIws.dtype).tiny)
     u_avg = torch.stack([sum_dim(wgt * Rx, -1), sum_dim(wgt * Ry, -1)], -1)   # (B, S, Q, 2)
-    a = 0.5 * torch.einsum("bsgd,gp,g->bsdp", u_avg, tab["phi_q"], tab["wq"])
+    a = 0.5 * torch.einsum("bsgd,gp,g->bsdp", u_avg, tab.phi_q, tab.wq)
     X = torch.zeros(B, S, 2 + N, n, dtype=a.dtype, device=a.device)
     X[:, :, :2, :] = a
     qc = torch.cat([torch.zeros(B, N, dtype=a.dtype, device=a.device), X.reshape(B, -1)], -1)

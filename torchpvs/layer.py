@@ -14,14 +14,13 @@ from .equilibrium import Equilibrium
 from .inputs import batch_inputs
 from .options import SolverOptions
 from .plan import Plan
-from .scene import Scene, load_scene
-from .sections import TubeTensors, precurvature_coefficients
+from .scene import Scene, SceneError, check_tube_numbers, load_scene
+from .sections import TubeProperties, TubeTensors
 from .solver import solve_tensors
 
 __all__ = ["CTR"]
 
-_PROPS = ("E", "G", "inner_diameter", "outer_diameter", "straight_length", "curved_length",
-          "precurvature")
+_PROPS = TubeProperties._fields
 
 
 class CTR(nn.Module):
@@ -44,12 +43,9 @@ class CTR(nn.Module):
         super().__init__()
         self.scene = scene if isinstance(scene, Scene) else load_scene(scene)
         self.options = options or SolverOptions()
-        tubes = self.scene.tubes
-        coef = precurvature_coefficients(tubes, dtype)
-        for name in _PROPS[:-1]:
-            self.register_buffer(name, torch.tensor([getattr(t, name) for t in tubes],
-                                                    dtype=dtype))
-        self.register_buffer("precurvature", coef)
+        props = TubeProperties.from_tubes(self.scene.tubes, dtype)
+        for name, value in zip(_PROPS, props, strict=True):
+            self.register_buffer(name, value)
         # The robot's plan (layout reuse between calls at the same insertions); valid while the
         # properties keep the values it was built from and need no gradient (_solver_tubes).
         self._plan: Plan | None = None
@@ -67,42 +63,35 @@ class CTR(nn.Module):
             self.register_parameter(name, nn.Parameter(value.detach().clone()))
         return self
 
+    def _properties(self) -> TubeProperties:
+        """The current buffers/parameters as :class:`~torchpvs.sections.TubeProperties`."""
+        return TubeProperties(*(getattr(self, name) for name in _PROPS))
+
     def tube_tensors(self) -> TubeTensors:
         """Derived stiffnesses and lengths as ``(1, N)`` tensors (differentiable)."""
-        return TubeTensors.from_properties(**{name: getattr(self, name) for name in _PROPS})
+        return TubeTensors.from_properties(*self._properties())
 
     def _check_properties(self) -> None:
-        """The scene rules (torchpvs.scene) on the current buffers/parameters, in tensor form:
-        one reduction in the common case, a named-field message on failure."""
-        E, G, di, do = self.E, self.G, self.inner_diameter, self.outer_diameter
-        Ls, Lc, pc = self.straight_length, self.curved_length, self.precurvature
-        rules = [
-            (~torch.isfinite(torch.cat([E, G, di, do, Ls, Lc, pc.reshape(-1)])),
-             None, "must be finite"),
-            (E <= 0, "E", "must be > 0 [Pa]"),
-            (G <= 0, "G", "must be > 0 [Pa]"),
-            (di < 0, "inner_diameter", "must be >= 0 [m]"),
-            (do <= di, "outer_diameter", "must exceed inner_diameter"),
-            (Ls < 0, "straight_length", "must be >= 0 [m]"),
-            (Lc < 0, "curved_length", "must be >= 0 [m]"),
-            (Ls + Lc <= 0, "straight_length + curved_length", "must be > 0 [m]"),
-        ]
-        if do.shape[0] > 1:
-            rules.append((torch.cat([torch.zeros_like(do[:1], dtype=torch.bool),
-                                     do[1:] > di[:-1]]), "outer_diameter",
-                          "must not exceed the next outer tube's inner_diameter"))
+        """The scene rules on the current buffers/parameters: the one validator of tube
+        properties (:func:`torchpvs.scene.check_tube_numbers`) on their values (one copy to
+        the host), its message prefixed with ``CTR:`` (a ``ValueError``)."""
+        props = self._properties()
         with torch.no_grad():
-            if not bool(torch.stack([r[0].any() for r in rules]).any()):
-                return
-            for mask, name, rule in rules:
-                if bool(mask.any()):
-                    if name is None:
-                        raise ValueError(f"CTR: every tube property {rule} (E, G, diameters, "
-                                         f"lengths, precurvature)")
-                    j = int(mask.reshape(-1).nonzero()[0])
-                    value = {"E": E, "G": G, "inner_diameter": di, "outer_diameter": do,
-                             "straight_length": Ls, "curved_length": Lc}.get(name, Ls + Lc)[j]
-                    raise ValueError(f"CTR: tubes[{j}].{name} ({float(value):g}) {rule}")
+            flat = torch.cat([t.detach().reshape(-1) for t in props]).tolist()
+        cols, at = [], 0
+        for t in props:
+            cols.append(flat[at:at + t.numel()])
+            at += t.numel()
+        *numbers, pc = cols
+        N = len(numbers[0])
+        per_tube = len(pc) // N if N else 0
+        try:
+            for j in range(N):
+                check_tube_numbers(j, *(c[j] for c in numbers),
+                                   outer_inner_diameter=numbers[2][j - 1] if j else None,
+                                   precurvature=pc[j * per_tube:(j + 1) * per_tube])
+        except SceneError as e:
+            raise ValueError(f"CTR: {e}") from None
 
     def _solver_tubes(self) -> tuple[TubeTensors, Plan | None]:
         """Tube tensors for a solve and the plan to reuse: fresh differentiable ones and no
@@ -127,8 +116,7 @@ class CTR(nn.Module):
             # with autograd: no inference tensors (as torchpvs.plan.plan_for).
             with torch.no_grad(), torch.inference_mode(False):
                 values = tuple(t.detach().clone() for t in props)
-                named = dict(zip(_PROPS, values, strict=True))
-                self._plan = Plan(TubeTensors.from_properties(**named))
+                self._plan = Plan(TubeTensors.from_properties(*values))
             self._plan_values = values
         return self._plan.tubes, self._plan
 

@@ -23,12 +23,13 @@ import torch
 from .lie import exp_se3, rot_z
 
 if TYPE_CHECKING:
-    from .sections import Layout
+    from .sections import Layout, Tables
 
-__all__ = ["angle_offsets", "compact_hessian", "compact_q", "elastic_energy", "expand_hessian",
-           "expand_q", "magnus_twists", "node_constants", "node_fields", "poly",
-           "pose_constants", "pose_node_constants", "potential", "section_start_poses",
-           "split_q", "start_angles", "sum_dim", "tip_pose"]
+__all__ = ["Maps", "NodeConstants", "NodeFields", "PoseConstants", "angle_offsets",
+           "compact_hessian", "compact_q", "elastic_energy", "expand_hessian", "expand_q",
+           "magnus_twists", "node_constants", "node_fields", "poly", "pose_constants",
+           "pose_node_constants", "potential", "section_start_poses", "split_q", "start_angles",
+           "sum_dim", "tip_pose"]
 
 
 def sum_dim(x: torch.Tensor, dim: int) -> torch.Tensor:
@@ -74,12 +75,81 @@ def split_q(q: torch.Tensor, lay: Layout):
     return w, X[..., :2, :], X[..., 2:, :]
 
 
-def node_constants(lay: Layout, xi: torch.Tensor) -> dict[str, torch.Tensor]:
-    """The ``q``-independent part of :func:`node_fields` at normalized points ``xi (G,)``:
-    ``s (..., S, G)`` arc length [m], ``ustar (..., S, G, N, 3)`` precurvatures [1/m], and the
-    prescribed sections' twist ``presc_local (..., S, G, N)`` / ``presc_inc (..., S, N)`` [rad]
-    and mask ``pmask (..., S, N)``. It depends on the insertions only, so a solve that keeps
-    them computes it once per layout (:func:`build_maps` stores it for the Magnus nodes)."""
+class NodeConstants(NamedTuple):
+    """The ``q``-independent part of :func:`node_fields` at ``G`` normalized points of every
+    section (:func:`node_constants`; ``S`` section slots, ``N`` tubes).
+
+    Attributes:
+        s: ``(..., S, G)`` [m] arc length of the points.
+        ustar: ``(..., S, G, N, 3)`` [1/m] the tubes' precurvatures there, in their material
+            frames (zero where a tube is absent or straight).
+        presc_local: ``(..., S, G, N)`` [rad] the twist of a prescribed (single-tube) section
+            from its start to the point (zero elsewhere).
+        presc_inc: ``(..., S, N)`` [rad] a prescribed section's whole twist.
+        pmask: ``(..., S, N)`` float 0/1, the tube of a prescribed section where it is curved.
+    """
+
+    s: torch.Tensor
+    ustar: torch.Tensor
+    presc_local: torch.Tensor
+    presc_inc: torch.Tensor
+    pmask: torch.Tensor
+
+
+class NodeFields(NamedTuple):
+    """Strains and angles at ``G`` normalized points of every section (:func:`node_fields`;
+    ``S`` section slots, ``N`` tubes).
+
+    Attributes:
+        s: ``(..., S, G)`` [m] arc length of the points.
+        u: ``(..., S, G, 2)`` [1/m] backbone bending in the twist-free frame.
+        psi: ``(..., S, G, N)`` [rad] tube angles about the tangent.
+        dpsi: ``(..., S, G, N)`` [1/m] tube torsions ``psi'``.
+        ustar: ``(..., S, G, N, 3)`` [1/m] precurvatures in the tube frames.
+        Ru: ``(..., S, G, N, 2)`` [1/m] ``Rz(psi) u*_xy``, the precurvatures in the backbone
+            frame.
+        inc: ``(..., S, N)`` [rad] each section's angle increment (:func:`angle_offsets`).
+        psi_start: ``(..., S, N)`` [rad] the angles at each section's start.
+        psi0: ``(..., N)`` [rad] the angles at the orifice.
+    """
+
+    s: torch.Tensor
+    u: torch.Tensor
+    psi: torch.Tensor
+    dpsi: torch.Tensor
+    ustar: torch.Tensor
+    Ru: torch.Tensor
+    inc: torch.Tensor
+    psi_start: torch.Tensor
+    psi0: torch.Tensor
+
+
+class PoseConstants(NamedTuple):
+    """What :func:`tip_pose` needs of a layout at the Magnus points, on its *nonempty*
+    sections only (:func:`pose_node_constants`; ``S_p`` the batch's most nonempty sections,
+    ``G`` Magnus points, ``N`` tubes). Every field has the leading batch dim ``B``.
+
+    Attributes:
+        sec: ``(B, S_p)`` long, the section slots kept, in backbone order, padded with empty
+            ones.
+        h: ``(B, S_p)`` [m] their lengths.
+        presc_inc: ``(B, S_p, N)`` [rad] a prescribed section's whole twist.
+        ustar_held: ``(B, S_p, G, N, 2)`` [1/m] the in-plane precurvature of the tube of a
+            prescribed (single-tube) section, zero elsewhere.
+        presc_local: ``(B, S_p, G, N)`` [rad] a prescribed section's twist up to each point.
+    """
+
+    sec: torch.Tensor
+    h: torch.Tensor
+    presc_inc: torch.Tensor
+    ustar_held: torch.Tensor
+    presc_local: torch.Tensor
+
+
+def node_constants(lay: Layout, xi: torch.Tensor) -> NodeConstants:
+    """The ``q``-independent part of :func:`node_fields` at normalized points ``xi (G,)``
+    (:class:`NodeConstants`). It depends on the insertions only, so a solve that keeps them
+    computes it once per layout (:func:`build_maps` stores it for the Magnus nodes)."""
     h, start = lay.h, lay.start
     curved, presc = lay.curved, lay.presc
     s = start[..., None] + 0.5 * (xi + 1.0) * h[..., None]                 # (..., S, G)
@@ -94,17 +164,13 @@ def node_constants(lay: Layout, xi: torch.Tensor) -> dict[str, torch.Tensor]:
     Zt = _poly_int(zc[..., None, :, :], t)
     presc_local = (Zt - Z0[..., None, :]) * pmask[..., None, :]
     presc_inc = (_poly_int(zc, t0 + h[..., None]) - Z0) * pmask
-    return {"s": s, "ustar": ustar, "presc_local": presc_local, "presc_inc": presc_inc,
-            "pmask": pmask}
+    return NodeConstants(s=s, ustar=ustar, presc_local=presc_local, presc_inc=presc_inc,
+                         pmask=pmask)
 
 
-def pose_node_constants(lay: Layout, xi: torch.Tensor) -> dict[str, torch.Tensor]:
+def pose_node_constants(lay: Layout, xi: torch.Tensor) -> PoseConstants:
     """What :func:`tip_pose` needs of the layout at the Magnus points ``xi (G,)``, on the
-    *nonempty* sections only: ``sec (B, S_p)`` their slots, in backbone order, padded with
-    empty ones to the batch's most (``S_p``); per section ``h (B, S_p)`` [m], ``presc_inc
-    (B, S_p, N)`` [rad]; per point ``ustar_held (B, S_p, G, N, 2)`` [1/m] the in-plane
-    precurvature of the tubes of prescribed (single-tube) sections, zero elsewhere, and
-    ``presc_local (B, S_p, G, N)`` [rad] (:func:`node_constants`).
+    *nonempty* sections only (:class:`PoseConstants`).
 
     An empty section is an identity step of the pose and adds no angle, so leaving it out
     changes nothing (the product over the other sections keeps its order); it saves the node
@@ -114,7 +180,7 @@ def pose_node_constants(lay: Layout, xi: torch.Tensor) -> dict[str, torch.Tensor
     return _pose_sections(lay, node_constants(lay, xi))
 
 
-def _pose_sections(lay: Layout, c: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
+def _pose_sections(lay: Layout, c: NodeConstants) -> PoseConstants:
     """:func:`pose_node_constants` from the layout's :func:`node_constants` ``c``."""
     B, S = lay.h.shape
     nonempty = lay.h > 0
@@ -126,10 +192,10 @@ def _pose_sections(lay: Layout, c: dict[str, torch.Tensor]) -> dict[str, torch.T
             (B, Sp) + t.shape[2:]))
 
     held = (lay.presc[..., None] * lay.present)[:, :, None, :, None]     # (B, S, 1, N, 1)
-    return {"sec": sec, "h": take_sections(lay.h),
-            "presc_inc": take_sections(c["presc_inc"]),
-            "ustar_held": take_sections(c["ustar"][..., :2] * held),
-            "presc_local": take_sections(c["presc_local"])}
+    return PoseConstants(sec=sec, h=take_sections(lay.h),
+                         presc_inc=take_sections(c.presc_inc),
+                         ustar_held=take_sections(c.ustar[..., :2] * held),
+                         presc_local=take_sections(c.presc_local))
 
 
 def angle_offsets(w: torch.Tensor, c: torch.Tensor, lay: Layout, presc_inc: torch.Tensor,
@@ -154,28 +220,25 @@ def start_angles(psi0: torch.Tensor, inc: torch.Tensor) -> torch.Tensor:
 
 def node_fields(q: torch.Tensor, lay: Layout, xi: torch.Tensor,
                 phi: torch.Tensor, Qb: torch.Tensor,
-                const: dict[str, torch.Tensor] | None = None) -> dict[str, torch.Tensor]:
-    """Strains and angles at normalized points ``xi (G,)`` of every section.
-
-    Returns ``u (..., S, G, 2)`` backbone bending [1/m] in the twist-free frame,
-    ``psi (..., S, G, N)`` tube angles [rad], ``dpsi`` torsions [1/m], ``ustar (..., S, G, N, 3)``
-    precurvatures in the tube frames, ``Ru (..., S, G, N, 2)`` = ``Rz(psi) u*_xy``, and per
-    section the angle increments ``inc (..., S, N)`` and start angles ``psi_start``.
-    ``const``: :func:`node_constants` of the same layout and points (computed when ``None``;
-    pass it only where no gradient with respect to the layout is wanted).
+                const: NodeConstants | None = None) -> NodeFields:
+    """Strains and angles at normalized points ``xi (G,)`` of every section
+    (:class:`NodeFields`). ``phi``, ``Qb``: the basis and its integrals at ``xi`` (``(G, n)``
+    or ``(..., S, G, n)``). ``const``: :func:`node_constants` of the same layout and points
+    (computed when ``None``; pass it only where no gradient with respect to the layout is
+    wanted).
     """
     if const is None:
         const = node_constants(lay, xi)
     w, a, c = split_q(q, lay)
     h, present, presc = lay.h, lay.present, lay.presc
-    ustar, pmask = const["ustar"], const["pmask"]
+    ustar, pmask = const.ustar, const.pmask
     # phi/Qb are (G, n) or (..., S, G, n): matmul broadcasts over both.
     u = (a @ phi.transpose(-1, -2)).transpose(-1, -2)                    # (..., S, G, 2)
     dpsi = (c @ phi.transpose(-1, -2)).transpose(-1, -2)                 # (..., S, G, N)
-    psi0, inc = angle_offsets(w, c, lay, const["presc_inc"])
+    psi0, inc = angle_offsets(w, c, lay, const.presc_inc)
     psi_start = start_angles(psi0, inc)
     psi = (psi_start[..., None, :] + 0.5 * h[..., None, None] *
-           (c @ Qb.transpose(-1, -2)).transpose(-1, -2) + const["presc_local"])
+           (c @ Qb.transpose(-1, -2)).transpose(-1, -2) + const.presc_local)
     cs, sn = torch.cos(psi), torch.sin(psi)
     ux, uy = ustar[..., 0], ustar[..., 1]
     Rx, Ry = cs * ux - sn * uy, sn * ux + cs * uy
@@ -183,20 +246,19 @@ def node_fields(q: torch.Tensor, lay: Layout, xi: torch.Tensor,
     held = (presc[..., None] * present)[..., None, :]                    # (..., S, 1, N)
     u = u + torch.stack([sum_dim(Rx * held, -1), sum_dim(Ry * held, -1)], -1)
     dpsi = dpsi + pmask[..., None, :] * ustar[..., 2]
-    return {"s": const["s"], "u": u, "psi": psi, "dpsi": dpsi, "ustar": ustar, "Ru": Ru,
-            "inc": inc, "psi_start": psi_start, "psi0": psi0}
+    return NodeFields(s=const.s, u=u, psi=psi, dpsi=dpsi, ustar=ustar, Ru=Ru, inc=inc,
+                      psi_start=psi_start, psi0=psi0)
 
 
-def elastic_energy(q: torch.Tensor, lay: Layout,
-                   tab: dict[str, torch.Tensor]) -> torch.Tensor:
+def elastic_energy(q: torch.Tensor, lay: Layout, tab: Tables) -> torch.Tensor:
     """Stored elastic energy ``(...,)`` [J] of the whole robot, guide included."""
-    f = node_fields(q, lay, tab["xq"], tab["phi_q"], tab["Q_q"])
+    f = node_fields(q, lay, tab.xq, tab.phi_q, tab.Q_q)
     EI, GJ = lay.EI[..., None, None, :], lay.GJ[..., None, None, :]
-    Rx, Ry = f["Ru"].unbind(-1)
-    ux, uy = f["u"].unbind(-1)
+    Rx, Ry = f.Ru.unbind(-1)
+    ux, uy = f.u.unbind(-1)
     dx, dy = ux[..., None] - Rx, uy[..., None] - Ry
     bend = 0.5 * EI * (dx * dx + dy * dy)
-    tors = 0.5 * GJ * (f["dpsi"] - f["ustar"][..., 2]) ** 2
+    tors = 0.5 * GJ * (f.dpsi - f.ustar[..., 2]) ** 2
     dens = sum_dim((bend + tors) * lay.present[..., None, :], -1)       # (..., S, Q)
     w, _, _ = split_q(q, lay)
     guide = sum_dim(0.5 * lay.GJ * lay.D * w**2, -1)
@@ -219,14 +281,15 @@ def magnus_twists(u: torch.Tensor, h: torch.Tensor) -> torch.Tensor:
                         h.expand_as(cross)], -1)
 
 
-def section_start_poses(q: torch.Tensor, lay: Layout, tab: dict[str, torch.Tensor],
-                        const: dict[str, torch.Tensor] | None = None
-                        ) -> tuple[torch.Tensor, dict]:
+def section_start_poses(q: torch.Tensor, lay: Layout, tab: Tables,
+                        const: NodeConstants | None = None
+                        ) -> tuple[torch.Tensor, NodeFields]:
     """Poses ``(..., S + 1, 4, 4)`` of the backbone frame at every cut (orifice first, tip last),
     by the 4th-order Magnus scheme with ``n_magnus`` steps per section. ``const``: the
-    :func:`node_constants` of the Magnus nodes (see :func:`node_fields`)."""
-    f = node_fields(q, lay, tab["xm"], tab["phi_m"], tab["Q_m"], const)
-    u = f["u"]                                                             # (..., S, 2m, 2)
+    :func:`node_constants` of the Magnus nodes (see :func:`node_fields`); the second return
+    value is the :class:`NodeFields` there."""
+    f = node_fields(q, lay, tab.xm, tab.phi_m, tab.Q_m, const)
+    u = f.u                                                             # (..., S, 2m, 2)
     m = u.shape[-2] // 2
     omega = magnus_twists(u.reshape(u.shape[:-2] + (m, 2, 2)), lay.h / m)  # (..., S, m, 6)
     steps = exp_se3(omega)                                                 # (..., S, m, 4, 4)
@@ -242,26 +305,25 @@ def section_start_poses(q: torch.Tensor, lay: Layout, tab: dict[str, torch.Tenso
     return torch.stack(poses, -3), f
 
 
-def _tip_frame(q: torch.Tensor, lay: Layout, tab: dict[str, torch.Tensor],
-               const: dict[str, torch.Tensor]):
+def _tip_frame(q: torch.Tensor, lay: Layout, tab: Tables, const: PoseConstants):
     """The backbone frame at the tip ``(..., 4, 4)``, the tube angles at the orifice
     ``(..., N)`` and the angle increments of the nonempty sections ``(..., S_p, N)``, from the
     :func:`pose_node_constants` ``const``: :func:`section_start_poses` restricted to what the
     tip needs. Bending: the coefficients of active sections, plus ``Rz(psi) u*`` of the tube
     of a prescribed one (``ustar_held``; only there are the tube angles at the nodes needed)."""
     w, a, c = split_q(q, lay)
-    sec, h = const["sec"], const["h"]                   # (..., S_p): also per element (vmap)
+    sec, h = const.sec, const.h                   # (..., S_p): also per element (vmap)
     Sp = sec.shape[-1]
     # (q may carry leading dims beyond the layout's: several coordinate sets per element)
     a = torch.gather(a, -3, sec[..., None, None].expand(a.shape[:-3] + (Sp,) + a.shape[-2:]))
     c = torch.gather(c, -3, sec[..., None, None].expand(c.shape[:-3] + (Sp,) + c.shape[-2:]))
-    phi, Qb = tab["phi_m"], tab["Q_m"]
-    psi0, inc = angle_offsets(w, c, lay, const["presc_inc"], h)       # the kept sections
+    phi, Qb = tab.phi_m, tab.Q_m
+    psi0, inc = angle_offsets(w, c, lay, const.presc_inc, h)       # the kept sections
     psi_start = start_angles(psi0, inc)
     psi = (psi_start[..., None, :] + 0.5 * h[..., None, None] *
-           (c @ Qb.transpose(-1, -2)).transpose(-1, -2) + const["presc_local"])
+           (c @ Qb.transpose(-1, -2)).transpose(-1, -2) + const.presc_local)
     cs, sn = torch.cos(psi), torch.sin(psi)
-    us = const["ustar_held"]
+    us = const.ustar_held
     ux, uy = us[..., 0], us[..., 1]
     u = (a @ phi.transpose(-1, -2)).transpose(-1, -2)                    # (B, S_p, G, 2)
     u = u + torch.stack([sum_dim(cs * ux - sn * uy, -1), sum_dim(sn * ux + cs * uy, -1)], -1)
@@ -288,8 +350,7 @@ def _ordered_product(mats: torch.Tensor) -> torch.Tensor:
     return mats[..., 0, :, :]
 
 
-def tip_pose(q: torch.Tensor, lay: Layout, tab: dict[str, torch.Tensor],
-             const: dict[str, torch.Tensor] | None = None):
+def tip_pose(q: torch.Tensor, lay: Layout, tab: Tables, const: PoseConstants | None = None):
     """Tip position ``(..., 3)`` and the material frame ``(..., 3, 3)`` of the tube forming the
     tip (base frame), plus the tube angles at the tip ``(..., N)``. ``const``: the
     :func:`pose_node_constants` of the Magnus nodes (:func:`pose_constants`; the nonempty
@@ -297,7 +358,7 @@ def tip_pose(q: torch.Tensor, lay: Layout, tab: dict[str, torch.Tensor],
     if const is None:
         poses, f = section_start_poses(q, lay, tab)
         g = poses[..., -1, :, :]
-        psi0, inc = f["psi0"], f["inc"]
+        psi0, inc = f.psi0, f.inc
     else:
         g, psi0, inc = _tip_frame(q, lay, tab, const)
     psi_tip = psi0 + sum_dim(inc, -2)                                       # (..., N)
@@ -312,7 +373,7 @@ def skew_vee(A: torch.Tensor) -> torch.Tensor:
                               A[..., 1, 0] - A[..., 0, 1]], -1)
 
 
-def potential(q: torch.Tensor, lay: Layout, tab: dict[str, torch.Tensor],
+def potential(q: torch.Tensor, lay: Layout, tab: Tables,
               ref_rotation: torch.Tensor | None = None, with_load: bool = True) -> torch.Tensor:
     """Total potential ``(...,)`` [J]: elastic energy minus the work of the tip load.
 
@@ -369,22 +430,84 @@ def angle_bases(lay: Layout, nq: int) -> torch.Tensor:
     return b * qmask[:, None, None, :]
 
 
-def build_maps(lay: Layout, tab: dict[str, torch.Tensor],
-               nq: int) -> dict[str, torch.Tensor]:
+class Maps(NamedTuple):
+    """The ``q``-independent structure of one batch's energy, gradient and Hessian on the
+    kernel's *compact* coordinates (:func:`build_maps`): ``B`` elements, ``N`` tubes, ``S``
+    compact sections (the batch's most active ones; an element's active sections first, in
+    backbone order, then padding sections of zero weight), ``Q`` quadrature nodes, ``n`` basis
+    functions, ``C = 2 + N`` strain components per section, ``nq_c = N + S C n`` compact
+    coordinates. The coordinates are strains [1/m] (the guide twists first), so a Hessian
+    entry is in J·m² = N·m³. Every field has the leading batch dim ``B`` except the shared
+    tables ``phi``, ``Qb``, ``values_T``, ``Q_QQ``, ``phi_PQ``. A row subset made for a merit
+    evaluation (:meth:`torchpvs.newton.Problem.subset`) sets the fields it does not need to
+    ``None``.
+
+    Attributes:
+        ustar: ``(B, S, Q, N, 3)`` [1/m] precurvatures at the quadrature nodes, tube frames.
+        EIw: ``(B, S, Q, N)`` [N·m³] quadrature weight [m] times ``EI`` of the tubes present.
+        EIws: ``(B, S, Q)`` [N·m³] ``EIw`` summed over the tubes.
+        GJw: ``(B, S, Q, N)`` [N·m³] quadrature weight times ``GJ`` of the tubes present.
+        H_sections: ``(B, S, C, n, C, n)`` [N·m³] the ``q``-independent section blocks of the
+            Hessian (bending ``A (x) I_2``, torsion ``T_kj``).
+        guide: ``(B, nq_c)`` [N·m³] the guide-twist diagonal ``GJ_j D_j`` (zero on the section
+            coordinates).
+        guide_const: ``(B,)`` [J] the bending energy of the curved material held in the guide.
+        h: ``(B, S)`` [m] the compact sections' lengths.
+        qmask: ``(B, nq_c)`` float 0/1, the active compact coordinates.
+        psi0: ``(B, N)`` [rad] the tube angles at the orifice (the one field that changes with
+            the base rotations: :meth:`torchpvs.plan.Plan.layout` replaces it).
+        bvec: ``(B, S, N, nq_c)`` [m] the angle bases ``b_kj = d psi_j(start of k) / dq``
+            (:func:`angle_bases`) on the compact coordinates.
+        cidx: ``(B, nq_c)`` long, each compact coordinate's index in the padded ``q``
+            (:func:`compact_q`, :func:`expand_q`).
+        presc_inc: ``(B, S_full, N)`` [rad] the prescribed twist of every section slot of the
+            layout (``S_full = 2N``; for the tube angles of the outputs).
+        phi, Qb: ``(Q, n)`` the basis and its integrals at the quadrature nodes
+            (``Tables.phi_q``, ``Tables.Q_q``; shared).
+        values_T: ``(n, 2Q)`` basis and integral values from coefficients in one product
+            (shared).
+        Q_QQ, phi_PQ: ``(Q, n + n^2)`` node sums ``sum_q f_q Q_qp`` with ``sum_q f_q Q_qp Q_qr``
+            (and the ``phi`` analogue) in one product (shared).
+        pose: the :class:`PoseConstants` of the layout's Magnus nodes (every nonempty
+            section, for :func:`tip_pose`).
+    """
+
+    ustar: torch.Tensor
+    EIw: torch.Tensor
+    EIws: torch.Tensor | None
+    GJw: torch.Tensor
+    H_sections: torch.Tensor | None
+    guide: torch.Tensor
+    guide_const: torch.Tensor
+    h: torch.Tensor
+    qmask: torch.Tensor
+    psi0: torch.Tensor
+    bvec: torch.Tensor
+    cidx: torch.Tensor | None
+    presc_inc: torch.Tensor | None
+    phi: torch.Tensor
+    Qb: torch.Tensor
+    values_T: torch.Tensor
+    Q_QQ: torch.Tensor
+    phi_PQ: torch.Tensor
+    pose: PoseConstants | None
+
+
+def build_maps(lay: Layout, tab: Tables, nq: int) -> Maps:
     """Everything the fast energy/gradient/Hessian needs that does not change with ``q``, on
-    the *compact* coordinates: the guide twists and the sections that carry coordinates
-    (``S_c`` = the most active sections of an element in the batch), active ones first in
-    their order along the backbone. Only active sections store ``q``-dependent energy (the
-    others have zero weight), so nothing is lost, and the dense per-element algebra shrinks
-    from ``nq`` to ``nq_c = N + S_c (2 + N) n`` coordinates (Fig. 3 robot at order 2: 50 ->
-    26). ``maps["cidx"] (B, nq_c)`` gives each compact coordinate's index in ``q``
-    (:func:`compact_q`, :func:`expand_q`). The pose constants (``pose_*``,
+    the *compact* coordinates (:class:`Maps`): the guide twists and the sections that carry
+    coordinates (``S_c`` = the most active sections of an element in the batch), active ones
+    first in their order along the backbone. Only active sections store ``q``-dependent
+    energy (the others have zero weight), so nothing is lost, and the dense per-element
+    algebra shrinks from ``nq`` to ``nq_c = N + S_c (2 + N) n`` coordinates (Fig. 3 robot at
+    order 2: 50 -> 26). ``maps.cidx (B, nq_c)`` gives each compact coordinate's index in ``q``
+    (:func:`compact_q`, :func:`expand_q`). The pose constants (``maps.pose``,
     :func:`pose_node_constants`) keep every nonempty section, ``presc_inc (B, S, N)`` every
     section's prescribed twist (for the tube angles of the outputs)."""
     h_full = lay.h.detach()
     B, S_full = h_full.shape
     N = lay.EI.shape[-1]
-    phi = tab["phi_q"]
+    phi = tab.phi_q
     Q, n = phi.shape
     C = 2 + N
     dtype, device = h_full.dtype, h_full.device
@@ -402,9 +525,9 @@ def build_maps(lay: Layout, tab: dict[str, torch.Tensor],
 
     qmask = torch.gather(lay.qmask.detach(), 1, cidx)
     with torch.no_grad():
-        ustar = sections(node_constants(lay, tab["xq"])["ustar"])
-        full = node_constants(lay, tab["xm"])
-        pose = {f"pose_{k}": v.detach() for k, v in _pose_sections(lay, full).items()}
+        ustar = sections(node_constants(lay, tab.xq).ustar)
+        full = node_constants(lay, tab.xm)
+        pose = PoseConstants._make(v.detach() for v in _pose_sections(lay, full))
         b_full = sections(angle_bases(lay, nq))                              # (B, S, N, nq)
         bvec = torch.gather(b_full, 3, cidx[:, None, None, :].expand(B, S, N, nc))
     W = sections(lay.W.detach())                                           # (B, S, Q)
@@ -426,16 +549,16 @@ def build_maps(lay: Layout, tab: dict[str, torch.Tensor],
     diag[..., :2] = A[..., None]
     diag[..., 2:] = T.permute(0, 1, 3, 4, 2)
     EIw = W[..., None] * EIp                      # node weights x stiffness (B, S, Q, N)
-    return {"ustar": ustar.detach(), "EIw": EIw, "EIws": sum_dim(EIw, -1),
-            "GJw": W[..., None] * GJp, "H_sections": blocks,
-            "guide": guide, "guide_const": lay.guide_const.detach(), "h": h,
-            "qmask": qmask, "psi0": lay.psi0.detach(), "bvec": bvec, "cidx": cidx,
-            "presc_inc": full["presc_inc"].detach(),
-            "phi": phi, "Qb": tab["Q_q"], **_node_tables(phi, tab["Q_q"]), **pose}
+    values_T, Q_QQ, phi_PQ = _node_tables(phi, tab.Q_q)
+    return Maps(ustar=ustar.detach(), EIw=EIw, EIws=sum_dim(EIw, -1), GJw=W[..., None] * GJp,
+                H_sections=blocks, guide=guide, guide_const=lay.guide_const.detach(), h=h,
+                qmask=qmask, psi0=lay.psi0.detach(), bvec=bvec, cidx=cidx,
+                presc_inc=full.presc_inc.detach(), phi=phi, Qb=tab.Q_q, values_T=values_T,
+                Q_QQ=Q_QQ, phi_PQ=phi_PQ, pose=pose)
 
 
 def compact_q(q: torch.Tensor, cidx: torch.Tensor) -> torch.Tensor:
-    """``(..., nq) -> (..., nq_c)``: the coordinates ``cidx = maps["cidx"]`` that
+    """``(..., nq) -> (..., nq_c)``: the coordinates ``cidx = maps.cidx`` that
     :func:`build_maps` keeps."""
     return torch.gather(q, -1, cidx.expand(q.shape[:-1] + cidx.shape[-1:]))
 
@@ -467,46 +590,47 @@ def compact_hessian(H: torch.Tensor, cidx: torch.Tensor) -> torch.Tensor:
     return rows.gather(2, cidx[:, None, :].expand(-1, nc, nc))
 
 
-def pose_constants(maps: dict[str, torch.Tensor]) -> dict[str, torch.Tensor]:
-    """The :func:`pose_node_constants` of the Magnus nodes stored by :func:`build_maps` (for
-    :func:`tip_pose` in solves that need no gradient with respect to the layout)."""
-    return {k[5:]: v for k, v in maps.items() if k.startswith("pose_")}
+def pose_constants(maps: Maps) -> PoseConstants:
+    """The :func:`pose_node_constants` of the Magnus nodes stored by :func:`build_maps`
+    (``maps.pose``; for :func:`tip_pose` in solves that need no gradient with respect to the
+    layout)."""
+    return maps.pose
 
 
 
-def _node_tables(phi: torch.Tensor, Qb: torch.Tensor) -> dict[str, torch.Tensor]:
+def _node_tables(phi: torch.Tensor, Qb: torch.Tensor
+                 ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Contraction tables over the quadrature nodes, so that each node sum is one matmul:
     ``values_T (n, 2Q)`` gives phi and Q values from coefficients; ``Q_QQ (Q, n + n^2)`` and
     ``phi_PQ (Q, n + n^2)`` give ``sum_q f_q Q_qp`` with ``sum_q f_q Q_qp Q_qr`` (and the phi
-    analogues) in one product."""
+    analogues) in one product. Returns ``(values_T, Q_QQ, phi_PQ)``."""
     Q, n = phi.shape
     QQ = (Qb[:, :, None] * Qb[:, None, :]).reshape(Q, n * n)
     PQ = (phi[:, :, None] * Qb[:, None, :]).reshape(Q, n * n)
-    return {"values_T": torch.cat([phi, Qb], 0).T.contiguous(),
-            "Q_QQ": torch.cat([Qb, QQ], -1).contiguous(),
-            "phi_PQ": torch.cat([phi, PQ], -1).contiguous()}
+    return (torch.cat([phi, Qb], 0).T.contiguous(), torch.cat([Qb, QQ], -1).contiguous(),
+            torch.cat([phi, PQ], -1).contiguous())
 
 
-def _local(q: torch.Tensor, maps: dict[str, torch.Tensor]):
+def _local(q: torch.Tensor, maps: Maps):
     """Node fields on the compact coordinates: backbone bending ``ux, uy (B, S, Q)``, torsions
     ``dp (B, S, Q, N)``, ``Rz(psi) u*_xy`` as ``Rx, Ry (B, S, Q, N)`` and the precurvatures
     ``us (B, S, Q, N, 3)``. Components are kept apart: reductions over a size-2 dimension are
     slow (:func:`sum_dim`)."""
-    bvec = maps["bvec"]
+    bvec = maps.bvec
     B, S, N, _ = bvec.shape
-    Q = maps["phi"].shape[0]
-    X = (q[:, N:] * maps["qmask"][:, N:]).reshape(B, S, 2 + N, -1)
-    Y = (X @ maps["values_T"]).transpose(-1, -2)                          # (B, S, 2Q, C)
+    Q = maps.phi.shape[0]
+    X = (q[:, N:] * maps.qmask[:, N:]).reshape(B, S, 2 + N, -1)
+    Y = (X @ maps.values_T).transpose(-1, -2)                          # (B, S, 2Q, C)
     ux, uy, dp, loc = Y[:, :, :Q, 0], Y[:, :, :Q, 1], Y[:, :, :Q, 2:], Y[:, :, Q:, 2:]
-    base = maps["psi0"][:, None, :] + (bvec.reshape(B, S * N, -1) @ q[:, :, None]).reshape(B, S, N)
-    psi = base[:, :, None, :] + 0.5 * maps["h"][:, :, None, None] * loc
-    us = maps["ustar"]
+    base = maps.psi0[:, None, :] + (bvec.reshape(B, S * N, -1) @ q[:, :, None]).reshape(B, S, N)
+    psi = base[:, :, None, :] + 0.5 * maps.h[:, :, None, None] * loc
+    us = maps.ustar
     cs, sn = torch.cos(psi), torch.sin(psi)
     usx, usy = us[..., 0], us[..., 1]
     return ux, uy, dp, cs * usx - sn * usy, sn * usx + cs * usy, us
 
 
-def elastic_energy_maps(q: torch.Tensor, maps: dict[str, torch.Tensor]) -> torch.Tensor:
+def elastic_energy_maps(q: torch.Tensor, maps: Maps) -> torch.Tensor:
     """Same value as :func:`elastic_energy`, through the precomputed structure (``q (B, nq)``)."""
     return _energy_from_fields(q, maps, *_local(q, maps))
 
@@ -514,9 +638,9 @@ def elastic_energy_maps(q: torch.Tensor, maps: dict[str, torch.Tensor]) -> torch
 def _energy_from_fields(q, maps, ux, uy, dp, Rx, Ry, us):
     dx, dy = ux[..., None] - Rx, uy[..., None] - Ry
     tors = dp - us[..., 2]
-    dens = 0.5 * sum_dim(maps["EIw"] * (dx * dx + dy * dy) + maps["GJw"] * tors * tors, -1)
-    guide = 0.5 * (maps["guide"] * q**2).sum(-1)
-    return dens.sum((-1, -2)) + guide + maps["guide_const"]
+    dens = 0.5 * sum_dim(maps.EIw * (dx * dx + dy * dy) + maps.GJw * tors * tors, -1)
+    guide = 0.5 * (maps.guide * q**2).sum(-1)
+    return dens.sum((-1, -2)) + guide + maps.guide_const
 
 
 class _ElasticTerms(NamedTuple):
@@ -539,39 +663,39 @@ class _ElasticTerms(NamedTuple):
     nq: torch.Tensor
 
 
-def _elastic_terms(q: torch.Tensor, maps: dict[str, torch.Tensor],
+def _elastic_terms(q: torch.Tensor, maps: Maps,
                    energy: bool = False) -> _ElasticTerms:
     ux, uy, dp, Rx, Ry, us = _local(q, maps)
     U = _energy_from_fields(q, maps, ux, uy, dp, Rx, Ry, us) if energy else None
     B, nq = q.shape
-    bvec, phi, Qb = maps["bvec"], maps["phi"], maps["Qb"]
+    bvec, phi, Qb = maps.bvec, maps.phi, maps.Qb
     _, S, N, _ = bvec.shape
     n = phi.shape[-1]
-    EIw, EIs = maps["EIw"], maps["EIws"]                                    # (B, S, Q, N), sum
+    EIw, EIs = maps.EIw, maps.EIws                                    # (B, S, Q, N), sum
     ERx, ERy = EIw * Rx, EIw * Ry
     gu = torch.stack([EIs * ux - sum_dim(ERx, -1), EIs * uy - sum_dim(ERy, -1)], -2)
     gpsi = ERy * ux[..., None] - ERx * uy[..., None]                        # (B, S, Q, N)
-    gdp = maps["GJw"] * (dp - us[..., 2])
-    hh = 0.5 * maps["h"][:, :, None, None]
+    gdp = maps.GJw * (dp - us[..., 2])
+    hh = 0.5 * maps.h[:, :, None, None]
     gX = torch.cat([gu @ phi,
                     gdp.transpose(-1, -2) @ phi + hh * (gpsi.transpose(-1, -2) @ Qb)],
                    2)                                                       # (B, S, C, n)
     bflat = bvec.reshape(B, S * N, nq)
-    grad = (gpsi.sum(2).reshape(B, 1, S * N) @ bflat)[:, 0] + maps["guide"] * q
-    grad[:, N:] += gX.reshape(B, -1) * maps["qmask"][:, N:]
+    grad = (gpsi.sum(2).reshape(B, 1, S * N) @ bflat)[:, 0] + maps.guide * q
+    grad[:, N:] += gX.reshape(B, -1) * maps.qmask[:, N:]
     # Angle terms of the Hessian, reduced over nodes per (section, tube).
     hpp = ERx * ux[..., None] + ERy * uy[..., None]                         # (B, S, Q, N)
-    HQ = hpp.transpose(-1, -2) @ maps["Q_QQ"]                               # (B, S, N, n + n^2)
+    HQ = hpp.transpose(-1, -2) @ maps.Q_QQ                               # (B, S, N, n + n^2)
     # d2e/du dpsi_j = -EI_j J Ru_j = EI_j (Ry, -Rx), laid out (B, S, N, 2, Q) for one product.
     hup = torch.stack([ERy.transpose(-1, -2), -ERx.transpose(-1, -2)], -2)
-    MP = hup @ maps["phi_PQ"]                                               # (B, S, N, 2, n+n^2)
+    MP = hup @ maps.phi_PQ                                               # (B, S, N, 2, n+n^2)
     return _ElasticTerms(
         grad, U, bflat, alpha=hpp.sum(2), beta=hh * HQ[..., :n], mu=MP[..., :n],
         hh=hh[:, :, 0, 0], gq=HQ[..., n:].reshape(B, S, N, n, n),
         nq=MP[..., n:].reshape(B, S, N, 2, n, n))
 
 
-def elastic_grad_hess(q: torch.Tensor, maps: dict[str, torch.Tensor], energy: bool = False):
+def elastic_grad_hess(q: torch.Tensor, maps: Maps, energy: bool = False):
     """Exact gradient ``(B, nq)`` and Hessian ``(B, nq, nq)`` of the elastic energy; with
     ``energy=True`` also the energy ``(B,)`` itself, bit for bit :func:`elastic_energy_maps`
     (from the same node fields: a line search's energy at the iterate costs no extra pass).
@@ -584,8 +708,8 @@ def elastic_grad_hess(q: torch.Tensor, maps: dict[str, torch.Tensor], energy: bo
     t = _elastic_terms(q, maps, energy)
     bflat = t.bflat
     B, SN, nq = bflat.shape
-    n = maps["phi"].shape[-1]
-    N = maps["bvec"].shape[2]
+    n = maps.phi.shape[-1]
+    N = maps.bvec.shape[2]
     S, C = SN // N, 2 + N
     # H = b^T V + V^T b + (guide diagonal and within-section blocks), with V = alpha b / 2 plus
     # beta at (kj, c_kj) and mu at (kj, a_k): b^T V + V^T b is ONE GEMM, [b; V]^T [V; b], that
@@ -596,12 +720,12 @@ def elastic_grad_hess(q: torch.Tensor, maps: dict[str, torch.Tensor], energy: bo
     Vc[:, :, 2:].diagonal(dim1=1, dim2=2).add_(t.beta.permute(0, 3, 1, 2))  # (B, n, S, N)
     Vc[:, :, :2] += t.mu.permute(0, 2, 3, 4, 1)                             # (B, N, 2, n, S)
     H = torch.bmm(torch.cat([bflat, V], 1).transpose(1, 2), torch.cat([V, bflat], 1))
-    H.diagonal(dim1=-2, dim2=-1).add_(maps["guide"])
+    H.diagonal(dim1=-2, dim2=-1).add_(maps.guide)
     # Blocks within a section, assembled in a contiguous copy of the constant ones (gamma on
     # the (c_kj, c_kj) blocks, nu on (a_k, c_kj) and its transpose), then added to H's block
     # diagonal in one pass: strided adds of each term straight into H cost 3x more.
     Cn = C * n
-    blk = maps["H_sections"].clone()                                       # (B, S, C, n, C, n)
+    blk = maps.H_sections.clone()                                       # (B, S, C, n, C, n)
     hh = t.hh.reshape(B, S, 1, 1, 1)
     blk[:, :, 2:, :, 2:].diagonal(dim1=2, dim2=4).addcmul_(hh * hh, t.gq.permute(0, 1, 3, 4, 2))
     upper = blk[:, :, :2, :, 2:]                                           # (B, S, 2, n, N, n)
@@ -612,7 +736,7 @@ def elastic_grad_hess(q: torch.Tensor, maps: dict[str, torch.Tensor], energy: bo
     return (t.grad, H, t.energy) if energy else (t.grad, H)
 
 
-def section_grad_block(q: torch.Tensor, maps: dict[str, torch.Tensor], sec: torch.Tensor):
+def section_grad_block(q: torch.Tensor, maps: Maps, sec: torch.Tensor):
     """The elastic energy's gradient ``(B, nq)`` and the block ``(B, C n, C n)`` of its Hessian
     on the coordinates of compact section ``sec (B,)`` (one per element; ``C = 2 + N``), without
     the terms through the angle bases: those couple the section's mean torsions through the
@@ -622,11 +746,11 @@ def section_grad_block(q: torch.Tensor, maps: dict[str, torch.Tensor], sec: torc
     with no ``(nq, nq)`` Hessian made."""
     t = _elastic_terms(q, maps)
     B = q.shape[0]
-    n = maps["phi"].shape[-1]
-    N = maps["bvec"].shape[2]
+    n = maps.phi.shape[-1]
+    N = maps.bvec.shape[2]
     C = 2 + N
     rows = torch.arange(B, device=q.device)
-    blk = maps["H_sections"][rows, sec]                                    # (B, C, n, C, n)
+    blk = maps.H_sections[rows, sec]                                    # (B, C, n, C, n)
     hh = t.hh[rows, sec].reshape(B, 1, 1, 1)
     blk[:, 2:, :, 2:].diagonal(dim1=1, dim2=3).addcmul_(
         hh * hh, t.gq[rows, sec].permute(0, 2, 3, 1))

@@ -23,17 +23,17 @@ import torch
 
 from .batch_linalg import active_index, chunked, compact, compact_scaled, expand, take
 from .mechanics import (
+    Maps,
     compact_q,
     elastic_energy_maps,
     elastic_grad_hess,
     expand_q,
-    pose_constants,
     skew_vee,
     tip_pose,
 )
 
 if TYPE_CHECKING:
-    from .sections import Layout
+    from .sections import Layout, Tables
 
 __all__ = ["NewtonResult", "Problem", "derivatives", "merit", "newton", "scaled_residual",
            "stability_threshold", "tolerance"]
@@ -43,7 +43,7 @@ class NewtonResult(NamedTuple):
     """Kernel output for a batch of ``B`` elements with ``nq`` (padded) coordinates."""
 
     q: torch.Tensor            # (B, nq) solution (inactive coordinates 0)
-    # (B, nc, nc) Hessian at q on the compact coordinates prob.maps["cidx"] (identity on their
+    # (B, nc, nc) Hessian at q on the compact coordinates prob.maps.cidx (identity on their
     # inactive rows; mechanics.expand_hessian gives the padded (B, nq, nq) one)
     H: torch.Tensor
     g: torch.Tensor            # (B, nq) gradient at q
@@ -60,19 +60,31 @@ class NewtonResult(NamedTuple):
     energy: torch.Tensor | None = None
 
 
-_SHARED = ("phi", "Qb", "values_T", "Q_QQ", "phi_PQ")   # maps entries without a batch dim
-
-
-# maps entries the merit reads without a tip load (mechanics.elastic_energy_maps)
-_MERIT = ("bvec", "qmask", "psi0", "h", "ustar", "EIw", "GJw", "guide", "guide_const")
+# Maps fields without a batch dim (shared by every row, never indexed)
+_SHARED = frozenset(("phi", "Qb", "values_T", "Q_QQ", "phi_PQ"))
+# Maps fields the merit reads without a tip load (mechanics.elastic_energy_maps), and with one
+_MERIT = frozenset(("bvec", "qmask", "psi0", "h", "ustar", "EIw", "GJw", "guide", "guide_const"))
+_MERIT_LOADED = _MERIT | {"cidx", "pose"}
+# per field of Maps: 0 shared (kept as is), 1 per row (indexed), 2 the pose constants (each
+# of their fields indexed)
+_KIND = tuple(0 if k in _SHARED else 2 if k == "pose" else 1 for k in Maps._fields)
 
 
 class Problem(NamedTuple):
-    """What a kernel needs: the layout, quadrature tables and precomputed maps of one batch."""
+    """What a kernel needs: the layout, quadrature tables and precomputed maps of one batch.
 
-    lay: Layout | None        # None in an unloaded subset (unused there: see subset)
-    tab: dict
-    maps: dict
+    Attributes:
+        lay: the :class:`~torchpvs.sections.Layout` (``None`` in an unloaded subset: unused
+            there, see :meth:`subset`).
+        tab: the discretization's :class:`~torchpvs.sections.Tables`.
+        maps: the :class:`~torchpvs.mechanics.Maps` of the layout.
+        with_load: the potential includes the tip load's work (some element is loaded).
+        has_moment: a tip moment is modelled (its virtual work enters the potential).
+    """
+
+    lay: Layout | None
+    tab: Tables
+    maps: Maps
     with_load: bool
     has_moment: bool
 
@@ -80,16 +92,16 @@ class Problem(NamedTuple):
         """The problem restricted to batch rows ``idx`` (indices, or a slice for views without a
         copy). Only what is read is copied: the layout only with a tip load (the elastic terms
         live in the maps; without load the subset's ``lay`` is None), and for ``merit_only`` only
-        the energy's entries (and the pose's, with a load)."""
+        the energy's maps fields (and the pose's, with a load; the others are ``None``). The
+        shared fields (no batch dim) are kept as they are."""
         lay = type(self.lay)(*(v[idx] for v in self.lay)) if self.with_load else None
-
-        def wanted(k: str) -> bool:
-            if not merit_only:
-                return True
-            return k in _MERIT or (self.with_load and (k == "cidx" or k.startswith("pose_")))
-
-        maps = {k: (v if k in _SHARED else v[idx]) for k, v in self.maps.items()
-                if k in _SHARED or wanted(k)}
+        wanted = None if not merit_only else _MERIT_LOADED if self.with_load else _MERIT
+        maps = Maps._make(
+            v if kind == 0 or v is None
+            else None if wanted is not None and name not in wanted
+            else v[idx] if kind == 1
+            else type(v)._make(t[idx] for t in v)
+            for name, kind, v in zip(Maps._fields, _KIND, self.maps, strict=True))
         return self._replace(lay=lay, maps=maps)
 
 
@@ -136,9 +148,9 @@ def _load_hessian(q: torch.Tensor, prob: Problem):
     # tensors (inference tensors cannot be saved for backward).
     with torch.inference_mode(False), torch.enable_grad():
         lay_r = type(lay)(*(rep(v) for v in lay))
-        const = {k: rep(v) for k, v in pose_constants(prob.maps).items()}
-        cidx = rep(prob.maps["cidx"])
-        tab = {k: v.clone() if isinstance(v, torch.Tensor) else v for k, v in prob.tab.items()}
+        const = type(prob.maps.pose)._make(rep(v) for v in prob.maps.pose)
+        cidx = rep(prob.maps.cidx)
+        tab = type(prob.tab)._make(v.clone() for v in prob.tab)
         qr = q.detach().repeat_interleave(nc, 0).requires_grad_(True)
         p, R, _ = tip_pose(expand_q(qr, cidx, nq), lay_r, tab, const)
         work = (lay_r.force * p).sum(-1)
@@ -158,8 +170,8 @@ def merit(q: torch.Tensor, prob: Problem, q_ref: torch.Tensor) -> torch.Tensor:
     virtual work taken about ``q_ref``)."""
     U = elastic_energy_maps(q, prob.maps)
     if prob.with_load:
-        lay, tab, const = prob.lay, prob.tab, pose_constants(prob.maps)
-        nq, cidx = lay.qmask.shape[-1], prob.maps["cidx"]
+        lay, tab, const = prob.lay, prob.tab, prob.maps.pose
+        nq, cidx = lay.qmask.shape[-1], prob.maps.cidx
         p, R, _ = tip_pose(expand_q(q, cidx, nq), lay, tab, const)
         U = U - (lay.force * p).sum(-1)
         if prob.has_moment:
@@ -202,7 +214,7 @@ def newton(q: torch.Tensor, prob: Problem, L_char: torch.Tensor, *, method: str,
     ``deadline``: a ``time.perf_counter()`` time after which no further step is taken (the
     elements not converged by then are returned as such, with their residual).
     """
-    nq, cidx = q.shape[-1], prob.maps["cidx"]
+    nq, cidx = q.shape[-1], prob.maps.cidx
     qc, H, g, *rest = chunked(_newton, compact_q(q, cidx), prob, L_char, method=method,
                               tol=tol, max_iter=max_iter, deadline=deadline)
     # The Hessian stays compact: expanding it (and releasing the padded copy from inference
@@ -232,9 +244,9 @@ def _newton(q: torch.Tensor, prob: Problem, L_char: torch.Tensor, *, method: str
     lam = torch.zeros(B, dtype=dtype, device=device)
     tested = torch.zeros(B, dtype=torch.bool, device=device)   # passed the saddle test
     escapes = 0
-    act = active_index(prob.maps["qmask"])
+    act = active_index(prob.maps.qmask)
     for _ in range(max_iter + 1):
-        qmask = sub.maps["qmask"]
+        qmask = sub.maps.qmask
         if method == "minimize":   # the energy at q comes free: the line search's reference
             g, H, U = derivatives(q, sub, energy=True)
         else:
@@ -278,7 +290,7 @@ def _newton(q: torch.Tensor, prob: Problem, L_char: torch.Tensor, *, method: str
             U = None if U is None else U[keep]
             sub = sub.subset(keep)
             todo = torch.ones_like(lam, dtype=torch.bool)
-            qmask = sub.maps["qmask"]
+            qmask = sub.maps.qmask
             act = active_index(qmask)
         if method == "minimize":
             Hc = compact(H, act)
@@ -355,7 +367,7 @@ def _saddle_test(q, H, g, scale, new, prob: Problem, L_char, act):
     sel, v = sel[neg], expand(vec[neg][:, :, 0] * sc[neg], None if a is None else a[neg],
                               q.shape[-1])
     sub = prob.subset(sel, merit_only=True)
-    v = v * sub.maps["qmask"]
+    v = v * sub.maps.qmask
     sign = torch.where((g[sel] * v).sum(-1) > 0, -1.0, 1.0).to(v.dtype)
     v = sign[:, None] * v / (v.abs().amax(-1, keepdim=True) * L_char[sel, None]).clamp(min=1e-30)
     q0 = q[sel]

@@ -20,9 +20,9 @@ from dataclasses import dataclass, field
 
 import torch
 
-from .mechanics import build_maps
+from .mechanics import Maps, build_maps
 from .scene import Scene
-from .sections import Discretization, TubeTensors, build_layout, precurvature_coefficients
+from .sections import Discretization, Layout, TubeProperties, TubeTensors, build_layout
 
 __all__ = ["Plan", "plan_for", "tube_tensors"]
 
@@ -32,22 +32,18 @@ ORDER_START, MAGNUS_START = 2, 8
 def tube_tensors(scene: Scene, dtype: torch.dtype, device: torch.device) -> TubeTensors:
     """The scene's tube properties as ``(1, N)`` tensors (``coef``: ``(1, N, 3, P)``).
 
-    The stiffnesses are the tubes' own (:attr:`torchpvs.scene.Tube.bending_stiffness`, in
-    double precision, then rounded to ``dtype``); :meth:`TubeTensors.from_properties` is the
-    same formula on tensors, for :class:`torchpvs.CTR`'s differentiable properties (in their
-    dtype, so in float32 the two may differ in the last bit)."""
-    coef = precurvature_coefficients(scene.tubes, dtype, device)[None]
-
-    def row(values):
-        return torch.tensor([values], dtype=dtype, device=device)
-
-    return TubeTensors(
-        EI=row([t.bending_stiffness for t in scene.tubes]),
-        GJ=row([t.torsional_stiffness for t in scene.tubes]),
-        length=row([t.length for t in scene.tubes]),
-        straight=row([t.straight_length for t in scene.tubes]),
-        coef=coef,
-    )
+    The one conversion of the tubes (:meth:`TubeProperties.from_tubes`, as
+    :class:`torchpvs.CTR`'s buffers) and the one formula of the stiffnesses
+    (:meth:`TubeTensors.from_properties`), evaluated in double precision on the CPU and then
+    rounded to ``dtype``. The stiffnesses are then the tubes' own
+    (:attr:`torchpvs.scene.Tube.bending_stiffness`: the same operations in the same order, and
+    for fewer than 8 tubes torch's CPU ``pow`` is libm's, as Python's; for more its vectorized
+    ``pow`` may round a fourth power differently in the last bit). In float32 they may differ
+    in the last bit from :class:`torchpvs.CTR`'s, which evaluates the formula in its own dtype
+    (differentiably)."""
+    props = TubeProperties.from_tubes(scene.tubes, torch.float64)
+    return TubeTensors.from_properties(*props).map(
+        lambda t: t.to(dtype=dtype, device=device))
 
 
 @dataclass(frozen=True)
@@ -59,8 +55,8 @@ class _Memo:
     disc: Discretization
     tubes: TubeTensors
     psi0_guide: torch.Tensor
-    lay: dict
-    maps: dict
+    lay: Layout
+    maps: Maps
     extra: dict = field(default_factory=dict)   # constants computed on demand (see cached)
 
 
@@ -75,8 +71,10 @@ class Plan:
     tubes: TubeTensors
     _memo: dict = field(default_factory=dict, repr=False)
 
-    def layout(self, tubes: TubeTensors, D, A, F, M, loaded, disc: Discretization, nq: int):
-        """``(lay, maps)`` for a batch; reused from the last call with the same insertions,
+    def layout(self, tubes: TubeTensors, D, A, F, M, loaded, disc: Discretization,
+               nq: int) -> tuple[Layout, Maps]:
+        """``(lay, maps)`` for a batch (:class:`~torchpvs.sections.Layout`,
+        :class:`~torchpvs.mechanics.Maps`); reused from the last call with the same insertions,
         loaded mask, discretization and tube tensors (only angles and loads are replaced)."""
         grad = torch.is_grad_enabled() and any(
             t.requires_grad for t in (D, A, F, M, *tubes.tensors()))
@@ -87,9 +85,7 @@ class Plan:
                 and torch.equal(memo.loaded, loaded)):
             # psi0 = alpha + (twist of the curved material held in the guide).
             lay = memo.lay._replace(psi0=memo.psi0_guide + A, alpha=A, force=F, moment=M)
-            maps = dict(memo.maps)
-            maps["psi0"] = lay.psi0
-            return lay, maps
+            return lay, memo.maps._replace(psi0=lay.psi0)
         lay = build_layout(tubes, D, A, F, M, loaded, disc)
         maps = build_maps(lay, disc.tables(D.dtype, D.device), nq)
         if not grad:

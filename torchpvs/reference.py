@@ -477,8 +477,40 @@ class _OutOfTime(Exception):
     """The solve's time limit passed (raised between residual evaluations)."""
 
 
+@dataclass(eq=False)
+class _Shot:
+    """A shooting solve (:func:`_shoot`) and, from :func:`_equilibrium`, the state it
+    integrates to (``dofs`` unknowns, ``N`` tubes).
+
+    Attributes:
+        x: ``(dofs,)`` the scaled unknowns (``m_j(0)``, then ``mb_xy(0)`` with a load, over
+            ``m_ref``).
+        res: ``(dofs,)`` the scaled residual there.
+        nfev: residual evaluations made.
+        ok: the residual norm is below the convergence threshold (and, with the state, the
+            integration succeeded).
+        out_of_time: the time limit stopped the solve.
+        m0: ``(N,)`` [N·m] the torsional moments at the orifice; ``mb``: ``(2,)`` [N·m] the
+            bending moment there (zero without a load).
+        yend: the state vector at the tip (position, rotation, angles, moments).
+        pieces: the dense solution pieces along the backbone (``dense=True``), or ``[]``.
+        energy: [J] the stored energy minus the load's potential.
+    """
+
+    x: np.ndarray
+    res: np.ndarray
+    nfev: int
+    ok: bool
+    out_of_time: bool
+    m0: np.ndarray | None = None
+    mb: np.ndarray | None = None
+    yend: np.ndarray | None = None
+    pieces: list | None = None
+    energy: float | None = None
+
+
 def _shoot(prob: _Problem, x0: np.ndarray, tol: float,
-           deadline: float | None = None) -> dict[str, Any]:
+           deadline: float | None = None) -> _Shot:
     """Solve the boundary value problem from scaled unknowns ``x0`` (stopping at the first
     residual evaluation after ``deadline``, a ``time.perf_counter()`` value)."""
     conv_tol = _conv_tol(tol)
@@ -500,7 +532,7 @@ def _shoot(prob: _Problem, x0: np.ndarray, tol: float,
         return r
 
     if prob.dofs == 0:
-        return dict(x=np.zeros(0), res=np.zeros(0), nfev=0, ok=True, out_of_time=False)
+        return _Shot(x=np.zeros(0), res=np.zeros(0), nfev=0, ok=True, out_of_time=False)
     best_x, best_r = x0, fun(x0)
     if np.linalg.norm(best_r) > conv_tol:
         for method, opts in (("hybr", {"xtol": xtol, "eps": tol, "maxfev": 200 * (prob.dofs + 1)}),
@@ -519,21 +551,22 @@ def _shoot(prob: _Problem, x0: np.ndarray, tol: float,
                 best_x, best_r = x, r
             if np.linalg.norm(best_r) <= conv_tol:
                 break
-    return dict(x=best_x, res=best_r, nfev=nfev, ok=bool(np.linalg.norm(best_r) <= conv_tol),
-                out_of_time=out_of_time)
+    return _Shot(x=best_x, res=best_r, nfev=nfev, ok=bool(np.linalg.norm(best_r) <= conv_tol),
+                 out_of_time=out_of_time)
 
 
 def _equilibrium(prob: _Problem, x0: np.ndarray, tol: float, dense: bool,
-                 deadline: float | None = None) -> dict[str, Any]:
+                 deadline: float | None = None) -> _Shot:
     out = _shoot(prob, x0, tol, deadline)
-    m0, mb = prob.unpack(out["x"])
+    m0, mb = prob.unpack(out.x)
     yend, pieces, ok = prob.integrate(m0, mb, tol, dense=dense)
     if dense and not pieces:  # nothing exposed: a constant "solution" at s = 0
         y_init = yend.copy()
         pieces = [(0.0, 0.0, lambda s, y=y_init: np.repeat(y[:, None], np.size(s), axis=1))]
-    out.update(m0=m0, mb=mb, yend=yend, pieces=pieces, energy=prob.energy(yend, m0))
+    out.m0, out.mb, out.yend, out.pieces = m0, mb, yend, pieces
+    out.energy = prob.energy(yend, m0)
     if not ok:
-        out["ok"] = False
+        out.ok = False
     return out
 
 
@@ -545,7 +578,7 @@ def _actuation_forces(scene: Scene, prob: _Problem, x_full: tuple[np.ndarray, np
     def energy_at(D: np.ndarray) -> float:
         p = _Problem(scene, D, prob.alpha)
         res = _equilibrium(p, p.pack(*x_full), tol, dense=False)
-        return res["energy"]
+        return res.energy
 
     for j in range(prob.N):
         Dp = prob.D.copy()
@@ -684,14 +717,14 @@ def solve_standard(scene: Scene | Any, *, tol: float = 1e-10, initial: Any = Non
     solve_time = time.perf_counter() - t0
 
     N = prob.N
-    yend, m0 = res["yend"], res["m0"]
+    yend, m0 = res.yend, res.m0
     R = yend[3:12].reshape(3, 3)
     psi_end = yend[15:15 + N]  # psi_j frozen beyond l_j: psi_j(l_j)
     c, sn = math.cos(psi_end[prob.tip]), math.sin(psi_end[prob.tip])
     Rz = np.array([[c, -sn, 0.0], [sn, c, 0.0], [0.0, 0.0, 1.0]])
     tip_rot = R @ Rz
 
-    pieces = res["pieces"]
+    pieces = res.pieces
 
     def state_fn(s: np.ndarray) -> np.ndarray:
         tmp = StandardSolution.__new__(StandardSolution)
@@ -708,17 +741,17 @@ def solve_standard(scene: Scene | Any, *, tol: float = 1e-10, initial: Any = Non
     else:
         rel = np.zeros(0)
 
-    converged = bool(res["ok"])
+    converged = bool(res.ok)
     if converged:
         reason = "converged"
     else:
-        reason = (f"scaled residual {float(np.linalg.norm(res['res'])):.3g} > "
-                  f"{_conv_tol(tol):.3g} after {int(res['nfev'])} evaluations")
-        if res.get("out_of_time"):
+        reason = (f"scaled residual {float(np.linalg.norm(res.res)):.3g} > "
+                  f"{_conv_tol(tol):.3g} after {int(res.nfev)} evaluations")
+        if res.out_of_time:
             reason += f"; time limit {time_limit:g} s reached"
     forces = None
     if compute_forces and converged:
-        forces = _actuation_forces(scene, prob, (m0, res["mb"]), tol, res["energy"])
+        forces = _actuation_forces(scene, prob, (m0, res.mb), tol, res.energy)
     stable = ev = None
     if compute_stability and converged and not prob.loaded and prob.active:
         ev = _stability(prob, state_fn)
@@ -726,7 +759,7 @@ def solve_standard(scene: Scene | Any, *, tol: float = 1e-10, initial: Any = Non
     elif compute_stability and converged and not prob.loaded:
         ev, stable = None, True  # nothing exposed: no torsional coordinates, trivially stable
 
-    y0 = res["x"] * prob.m_ref
+    y0 = res.x * prob.m_ref
     return StandardSolution(
         converged=converged,
         tip_position=yend[0:3].copy(),
@@ -734,17 +767,17 @@ def solve_standard(scene: Scene | Any, *, tol: float = 1e-10, initial: Any = Non
         relative_rotation_at_outer_tip=rel,
         actuation_forces=forces,
         actuation_torques=-m0.copy(),
-        energy=float(res["energy"]),
+        energy=float(res.energy),
         stable=stable,
         min_stiffness_eigenvalue=ev,
-        residual_norm=float(np.linalg.norm(res["res"])),
-        iterations=int(res["nfev"]),
+        residual_norm=float(np.linalg.norm(res.res)),
+        iterations=int(res.nfev),
         dofs=int(prob.dofs),
         solve_time_s=float(solve_time),
         y0=y0,
         scene=scene,
         _m0_full=m0.copy(),
-        _mb0=np.asarray(res["mb"], float).copy(),
+        _mb0=np.asarray(res.mb, float).copy(),
         _pieces=pieces,
         _psi_end=psi_end.copy(),
         reason=reason,

@@ -35,6 +35,7 @@ __all__ = [
     "SceneError",
     "Tube",
     "builtin_scenes",
+    "check_tube_numbers",
     "load_scene",
 ]
 
@@ -342,6 +343,48 @@ _TUBE_NUMBERS = ("E", "G", "inner_diameter", "outer_diameter", "straight_length"
                  "curved_length")
 
 
+def check_tube_numbers(i: int, E: float, G: float, inner_diameter: float, outer_diameter: float,
+                       straight_length: float, curved_length: float, *,
+                       outer_inner_diameter: float | None = None,
+                       precurvature: Sequence[float] = ()) -> None:
+    """The rules of docs/conventions.md on the numbers of tube ``i`` (Python floats, SI units:
+    ``E``, ``G`` [Pa], diameters and lengths [m]; ``outer_inner_diameter`` [m] the inner
+    diameter of tube ``i - 1``, the next outer one, ``None`` for the outermost;
+    ``precurvature`` its coefficients [1/m, 1/m², ...] in any order). Raises a
+    :class:`SceneError` naming the tube, the field and the rule.
+
+    The one validator of tube properties: :class:`Scene` applies it to its tubes (after
+    converting their numbers), :class:`torchpvs.CTR` to its tensors at every forward (which
+    users may edit in place)."""
+    w = f"tubes[{i}]"
+    for key, value in zip(_TUBE_NUMBERS, (E, G, inner_diameter, outer_diameter,
+                                          straight_length, curved_length), strict=True):
+        if not math.isfinite(value):
+            raise SceneError(f"{w}.{key} must be finite, got {value!r}")
+    if not all(math.isfinite(c) for c in precurvature):
+        raise SceneError(f"{w}.precurvature must be finite, got {list(precurvature)!r}")
+    if E <= 0:
+        raise SceneError(f"{w}.E ({E:g} Pa) must be > 0")
+    if G <= 0:
+        raise SceneError(f"{w}.G ({G:g} Pa) must be > 0")
+    if inner_diameter < 0:
+        raise SceneError(f"{w}.inner_diameter ({inner_diameter:g} m) must be >= 0")
+    if outer_diameter <= inner_diameter:
+        raise SceneError(f"{w}.outer_diameter ({outer_diameter:g} m) must exceed "
+                         f"inner_diameter ({w}.inner_diameter = {inner_diameter:g} m)")
+    if straight_length < 0:
+        raise SceneError(f"{w}.straight_length ({straight_length:g} m) must be >= 0")
+    if curved_length < 0:
+        raise SceneError(f"{w}.curved_length ({curved_length:g} m) must be >= 0")
+    if straight_length + curved_length <= 0:
+        raise SceneError(f"{w}: straight_length + curved_length must be > 0")
+    if outer_inner_diameter is not None and outer_diameter > outer_inner_diameter:
+        raise SceneError(
+            f"{w}.outer_diameter ({outer_diameter:g} m) must not exceed "
+            f"tubes[{i - 1}].inner_diameter ({outer_inner_diameter:g} m): each tube fits "
+            f"inside the next outer tube")
+
+
 def _validate(scene: Scene) -> None:
     """Check every rule; store the numbers as Python floats (a lossless conversion of ints and
     numpy/torch scalars of single or double precision; anything else raises)."""
@@ -363,27 +406,9 @@ def _validate(scene: Scene) -> None:
             raise SceneError(f"{w}.name must be a string, got {_short_repr(t.name)}")
         t = dataclasses.replace(t, **nums, precurvature=pc)  # type: ignore[arg-type]
         tubes.append(t)
-        if t.E <= 0:
-            raise SceneError(f"{w}.E ({t.E:g} Pa) must be > 0")
-        if t.G <= 0:
-            raise SceneError(f"{w}.G ({t.G:g} Pa) must be > 0")
-        if t.inner_diameter < 0:
-            raise SceneError(f"{w}.inner_diameter ({t.inner_diameter:g} m) must be >= 0")
-        if t.outer_diameter <= t.inner_diameter:
-            raise SceneError(f"{w}.outer_diameter ({t.outer_diameter:g} m) must exceed "
-                             f"{w}.inner_diameter ({t.inner_diameter:g} m)")
-        if t.straight_length < 0:
-            raise SceneError(f"{w}.straight_length ({t.straight_length:g} m) must be >= 0")
-        if t.curved_length < 0:
-            raise SceneError(f"{w}.curved_length ({t.curved_length:g} m) must be >= 0")
-        if t.length <= 0:
-            raise SceneError(f"{w}: straight_length + curved_length must be > 0")
-        if i > 0:
-            outer = tubes[i - 1]
-            if t.outer_diameter > outer.inner_diameter:
-                raise SceneError(
-                    f"{w}.outer_diameter ({t.outer_diameter:g} m) must not exceed "
-                    f"tubes[{i - 1}].inner_diameter ({outer.inner_diameter:g} m)")
+        check_tube_numbers(i, *(nums[key] for key in _TUBE_NUMBERS),
+                           outer_inner_diameter=tubes[i - 1].inner_diameter if i else None,
+                           precurvature=[c for axis in pc for c in axis])
     object.__setattr__(scene, "tubes", tuple(tubes))
     act = scene.actuation
     if not isinstance(act, Actuation):

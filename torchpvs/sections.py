@@ -31,7 +31,37 @@ import torch
 
 from .basis import gauss_legendre, legendre_basis
 
-__all__ = ["Discretization", "Layout", "TubeTensors", "build_layout", "n_coordinates"]
+__all__ = ["Discretization", "Layout", "Tables", "TubeProperties", "TubeTensors", "build_layout",
+           "n_coordinates"]
+
+
+class TubeProperties(NamedTuple):
+    """The tubes' material and geometry as tensors, one entry per tube (outermost first), SI
+    units: ``E``, ``G`` ``(N,)`` [Pa]; ``inner_diameter``, ``outer_diameter``,
+    ``straight_length``, ``curved_length`` ``(N,)`` [m]; ``precurvature`` ``(N, 3, P)``
+    polynomial coefficients [1/m, 1/m², ...] in the arc length from the start of the curved
+    part (docs/conventions.md), zero-padded to the longest (``P >= 1``).
+
+    :meth:`from_tubes` is the one conversion of :class:`torchpvs.scene.Tube` s to tensors
+    (:class:`torchpvs.CTR` keeps these as its buffers; :func:`torchpvs.plan.tube_tensors`
+    derives the stiffnesses from them, :meth:`TubeTensors.from_properties`)."""
+
+    E: torch.Tensor
+    G: torch.Tensor
+    inner_diameter: torch.Tensor
+    outer_diameter: torch.Tensor
+    straight_length: torch.Tensor
+    curved_length: torch.Tensor
+    precurvature: torch.Tensor
+
+    @classmethod
+    def from_tubes(cls, tubes, dtype: torch.dtype,
+                   device: torch.device | str | None = None) -> TubeProperties:
+        """The properties of ``tubes`` (:class:`torchpvs.scene.Tube` s, validated), each
+        Python float rounded once to ``dtype``."""
+        return cls(*(torch.tensor([getattr(t, name) for t in tubes], dtype=dtype, device=device)
+                     for name in cls._fields[:-1]),
+                   precurvature=precurvature_coefficients(tubes, dtype, device))
 
 
 @dataclass(frozen=True)
@@ -56,19 +86,20 @@ class TubeTensors:
     @classmethod
     def from_tensors(cls, tensors) -> TubeTensors:
         """The inverse of :meth:`tensors`: properties matched to the fields by name order."""
-        return cls(**dict(zip((f.name for f in fields(cls)), tensors, strict=True)))
+        return cls(*tensors)
 
     def map(self, fn) -> TubeTensors:
         """``fn`` applied to every property (e.g. ``detach``)."""
-        return TubeTensors(**{f.name: fn(getattr(self, f.name)) for f in fields(self)})
+        return TubeTensors(*(fn(t) for t in self.tensors()))
 
     @classmethod
     def from_properties(cls, E, G, inner_diameter, outer_diameter, straight_length,
                         curved_length, precurvature) -> TubeTensors:
-        """From the per-tube material and geometry tensors of :class:`torchpvs.CTR` (``(N,)``
-        each, ``precurvature (N, 3, P)``), differentiably: ``EI = E I``, ``GJ = 2 G I`` with
-        ``I = pi (OD^4 - ID^4) / 64`` (the formulas of :class:`torchpvs.scene.Tube`), as
-        ``(1, N)`` tensors."""
+        """From the per-tube material and geometry tensors of :class:`TubeProperties` (``(N,)``
+        each, ``precurvature (N, 3, P)``; e.g. :class:`torchpvs.CTR`'s buffers, passed as
+        ``from_properties(*props)``), differentiably: ``EI = E I``, ``GJ = 2 G I`` with
+        ``I = pi (OD^4 - ID^4) / 64`` (the formulas of :class:`torchpvs.scene.Tube`, in the
+        same order), as ``(1, N)`` tensors."""
         second_moment = math.pi * (outer_diameter**4 - inner_diameter**4) / 64.0
         return cls(EI=(E * second_moment)[None], GJ=(G * 2.0 * second_moment)[None],
                    length=(straight_length + curved_length)[None],
@@ -95,6 +126,32 @@ def tube_rows(tubes: TubeTensors, rows) -> TubeTensors:
     return tubes.map(lambda t: t if t.shape[0] == 1 else t[rows])
 
 
+class Tables(NamedTuple):
+    """The quadrature and basis tables of one :class:`Discretization`, on a section's
+    normalized coordinate ``xi in [-1, 1]`` (dimensionless; ``Q = n_quad`` energy nodes, ``n =
+    n_basis`` basis functions, ``G = 2 n_magnus`` Magnus points). Shared, read-only constants
+    (:meth:`Discretization.tables` caches them): never written into.
+
+    Attributes:
+        xq: ``(Q,)`` Gauss–Legendre nodes of the energy quadrature.
+        wq: ``(Q,)`` their weights (summing to 2; a section of length ``h`` weighs ``h/2 wq``).
+        phi_q: ``(Q, n)`` the normalized Legendre basis at ``xq``
+            (:func:`torchpvs.basis.legendre_basis`).
+        Q_q: ``(Q, n)`` its integrals ``int_{-1}^{xi} phi_p`` at ``xq``.
+        xm: ``(G,)`` the Magnus points: the two Gauss points of each of ``n_magnus`` equal
+            steps of ``[-1, 1]``.
+        phi_m, Q_m: ``(G, n)`` the basis and its integrals at ``xm``.
+    """
+
+    xq: torch.Tensor
+    wq: torch.Tensor
+    phi_q: torch.Tensor
+    Q_q: torch.Tensor
+    xm: torch.Tensor
+    phi_m: torch.Tensor
+    Q_m: torch.Tensor
+
+
 @dataclass(frozen=True)
 class Discretization:
     """Static discretization choices: basis functions per strain, quadrature and Magnus steps."""
@@ -103,29 +160,26 @@ class Discretization:
     n_quad: int
     n_magnus: int
 
-    def tables(self, dtype: torch.dtype, device: torch.device) -> dict[str, torch.Tensor]:
-        """Quadrature nodes/weights and basis values (cached per dtype and device)."""
+    def tables(self, dtype: torch.dtype, device: torch.device) -> Tables:
+        """Quadrature nodes/weights and basis values (:class:`Tables`, cached per dtype and
+        device)."""
         return _tables(self, dtype, torch.device(device))
-
-    def _build_tables(self, dtype: torch.dtype, device: torch.device) -> dict[str, torch.Tensor]:
-        xq, wq = gauss_legendre(self.n_quad, dtype=dtype, device=device)
-        phi_q, Q_q = legendre_basis(xq, self.n_basis)
-        # Magnus sub-steps: n_magnus equal pieces of [-1, 1], two Gauss points each.
-        m = self.n_magnus
-        centers = -1.0 + (2.0 * torch.arange(m, dtype=dtype, device=device) + 1.0) / m
-        off = (1.0 / m) / 3.0**0.5
-        xm = torch.stack([centers - off, centers + off], -1).reshape(-1)
-        phi_m, Q_m = legendre_basis(xm, self.n_basis)
-        return {"xq": xq, "wq": wq, "phi_q": phi_q, "Q_q": Q_q, "xm": xm,
-                "phi_m": phi_m, "Q_m": Q_m}
 
 
 @functools.lru_cache(maxsize=64)
-def _tables(disc: Discretization, dtype: torch.dtype, device: torch.device):
+def _tables(disc: Discretization, dtype: torch.dtype, device: torch.device) -> Tables:
     # Read-only constants: callers never write into them. Ordinary tensors even when first
     # asked for in inference mode, since cached values later enter autograd graphs.
     with torch.inference_mode(False):
-        return disc._build_tables(dtype, device)
+        xq, wq = gauss_legendre(disc.n_quad, dtype=dtype, device=device)
+        phi_q, Q_q = legendre_basis(xq, disc.n_basis)
+        # Magnus sub-steps: n_magnus equal pieces of [-1, 1], two Gauss points each.
+        m = disc.n_magnus
+        centers = -1.0 + (2.0 * torch.arange(m, dtype=dtype, device=device) + 1.0) / m
+        off = (1.0 / m) / 3.0**0.5
+        xm = torch.stack([centers - off, centers + off], -1).reshape(-1)
+        phi_m, Q_m = legendre_basis(xm, disc.n_basis)
+        return Tables(xq=xq, wq=wq, phi_q=phi_q, Q_q=Q_q, xm=xm, phi_m=phi_m, Q_m=Q_m)
 
 
 def n_coordinates(n_tubes: int, n_basis: int) -> int:
@@ -245,7 +299,7 @@ def build_layout(tubes: TubeTensors, D: torch.Tensor, alpha: torch.Tensor,
 
     # Quadrature weights for the energy (only active sections store coordinate-dependent energy).
     tab = disc.tables(dtype, device)
-    W = 0.5 * h[..., None] * tab["wq"] * active[..., None]
+    W = 0.5 * h[..., None] * tab.wq * active[..., None]
 
     # The tube forming the tip: the largest exposed length, ties -> innermost.
     idx = torch.arange(N, device=device, dtype=dtype)

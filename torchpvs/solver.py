@@ -13,18 +13,26 @@ from __future__ import annotations
 import math
 import time
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import torch
 
 from .equilibrium import Equilibrium
+from .forces import ForceState
 from .implicit import ImplicitContext, differentiable_outputs
 from .inputs import batch_inputs, check_float_dtypes
 from .kernel import KERNELS
 from .mechanics import compact_hessian, expand_hessian
 from .newton import Problem
 from .options import AccuracyWarning, SolverError, SolverOptions
-from .order_control import Work, loaded_rows, order_estimate, refine_magnus, solve_order
+from .order_control import (
+    SolveState,
+    Work,
+    loaded_rows,
+    order_estimate,
+    refine_magnus,
+    solve_order,
+)
 from .plan import MAGNUS_START, ORDER_START, Plan, plan_for, tube_tensors
 from .predictor import initial_q, rotation_predictor
 from .scene import Scene, load_scene
@@ -124,7 +132,7 @@ def solve_tensors(scene: Scene, tubes: TubeTensors, D, A, F, M, opts: SolverOpti
             work.spend(res)
             if prev is None:
                 res = _load_ramp(scene, tubes, D, A, F, M, res, opts, plan, q_init, work)
-            elif bool((prev["converged"] & ~res["converged"]).any()):
+            elif bool((prev.converged & ~res.converged).any()):
                 # A higher order lost an equilibrium the lower one had: keep the lower order's
                 # batch (its estimate then says the accuracy is not met) rather than a failure.
                 res = prev
@@ -132,9 +140,9 @@ def solve_tensors(scene: Scene, tubes: TubeTensors, D, A, F, M, opts: SolverOpti
             if opts.order is not None:
                 break
             est, q_next = order_estimate(scene, tubes, D, A, F, M, res, opts, plan)
-            res["error_estimate"] = est
+            res.error_estimate = est
             # Elements that did not converge are reported as such; a higher order won't help.
-            if bool(((est <= budget) | ~res["converged"]).all()) or order >= opts.max_order \
+            if bool(((est <= budget) | ~res.converged).all()) or order >= opts.max_order \
                     or work.exhausted:
                 break
             order += 1
@@ -142,18 +150,17 @@ def solve_tensors(scene: Scene, tubes: TubeTensors, D, A, F, M, opts: SolverOpti
             prev = res
         if opts.n_magnus is None:
             res = refine_magnus(scene, tubes, D, A, F, M, res, opts, plan, work)
-    res["work_exhausted"] = work.exhausted
-    res["timed_out"] = work.timed_out
+    res.work_exhausted = work.exhausted
+    res.timed_out = work.timed_out
     diff = None
     # The Hessian is kept on the kernel's compact coordinates (implicit.full_hessian pads it).
     info = ImplicitContext(
-        qmask=res["lay"].qmask, loaded=res["loaded"], disc=res["disc"], tab=res["tab"],
-        with_load=res["with_load"], has_moment=res["has_moment"], ridge=opts.backward_ridge,
-        singular_tol=opts.singular_tol, Hc=res["Hc"], cidx=res["maps"]["cidx"],
-        qmask_c=res["maps"]["qmask"])
-    res["implicit_info"] = info
+        qmask=res.lay.qmask, loaded=res.loaded, disc=res.disc, tab=res.tab,
+        with_load=res.with_load, has_moment=res.has_moment, ridge=opts.backward_ridge,
+        singular_tol=opts.singular_tol, Hc=res.Hc, cidx=res.maps.cidx, qmask_c=res.maps.qmask)
+    res.implicit_info = info
     if needs_grad:
-        diff = differentiable_outputs(res["q"], info, D_in, A_in, F_in, M_in, tubes_in)
+        diff = differentiable_outputs(res.q, info, D_in, A_in, F_in, M_in, tubes_in)
     elapsed = time.perf_counter() - t0
 
     resolver = SolutionResolver(scene, tubes, D, A, F, M, res, opts, plan)
@@ -169,7 +176,7 @@ def solve_tensors(scene: Scene, tubes: TubeTensors, D, A, F, M, opts: SolverOpti
                 f"torchpvs.solve: requested accuracy {opts.accuracy:g} m not reached for "
                 f"{int(short.sum())} of {B} element(s) (first: element {b}, error estimate "
                 f"{float(eq.error_estimate[b]):.3g} m at order {eq.order} "
-                f"(max_order={opts.max_order}), {res['disc'].n_magnus} Magnus steps); see "
+                f"(max_order={opts.max_order}), {res.disc.n_magnus} Magnus steps); see "
                 f"Equilibrium.accuracy_met", AccuracyWarning, stacklevel=2)
     if opts.on_failure != "ignore":
         n_failed = int((~eq.converged).sum())
@@ -183,16 +190,21 @@ def solve_tensors(scene: Scene, tubes: TubeTensors, D, A, F, M, opts: SolverOpti
     return eq
 
 
-def _load_ramp(scene, tubes, D, A, F, M, res, opts: SolverOptions, plan: Plan, q_init,
-               work: Work):
+# The per-element fields of a SolveState that a load ramp's rows replace.
+_RAMP_MERGED = ("q", "g", "converged", "residual", "iterations", "tip", "R", "verdict")
+
+
+def _load_ramp(scene, tubes, D, A, F, M, res: SolveState, opts: SolverOptions, plan: Plan,
+               q_init, work: Work) -> SolveState:
     """Load continuation for the loaded elements that did not converge: the tip load is applied
     in ``options.load_steps`` equal steps, each solve warm-started from the last, from the
-    initial guess. Rows that converge at the full load replace the failed ones; ``res["ramp"]``
-    records for each element how far its ramp got (fraction of the load; NaN: no ramp)."""
+    initial guess. Rows that converge at the full load replace the failed ones (on a copy of
+    ``res``); ``ramp`` records for each element how far its ramp got (fraction of the load;
+    NaN: no ramp)."""
     B = D.shape[0]
-    res["ramp"] = torch.full((B,), float("nan"), dtype=D.dtype, device=D.device)
+    res.ramp = torch.full((B,), float("nan"), dtype=D.dtype, device=D.device)
     loaded = (F.abs().sum(-1) > 0) | (M.abs().sum(-1) > 0)
-    rows = (~res["converged"] & loaded).nonzero().flatten()
+    rows = (~res.converged & loaded).nonzero().flatten()
     n = opts.load_steps
     if rows.numel() == 0 or n < 2 or work.exhausted:
         return res
@@ -203,36 +215,35 @@ def _load_ramp(scene, tubes, D, A, F, M, res, opts: SolverOptions, plan: Plan, q
     sub = None
     for k in range(1, n + 1):
         t = k / n
-        sub = solve_order(scene, tube_rows(tubes, rows), Dr, Ar, Fr * t, Mr * t, res["order"],
-                           res["disc"].n_magnus, opts, q, plan, deadline=work.deadline)
+        sub = solve_order(scene, tube_rows(tubes, rows), Dr, Ar, Fr * t, Mr * t, res.order,
+                          res.disc.n_magnus, opts, q, plan, deadline=work.deadline)
         work.spend(sub)
-        alive = alive & sub["converged"]
+        alive = alive & sub.converged
         reached = torch.where(alive, torch.full_like(reached, t), reached)
         # Elements whose step failed keep their last converged state (their ramp ends there).
-        q = sub["q"] if q is None else torch.where(alive[:, None], sub["q"], q)
+        q = sub.q if q is None else torch.where(alive[:, None], sub.q, q)
         if not bool(alive.any()) or (work.exhausted and k < n):
             break
-    res = dict(res)
-    res["ramp"] = res["ramp"].clone()
-    res["ramp"][rows] = reached
+    res = replace(res, ramp=res.ramp.clone())
+    res.ramp[rows] = reached
     done = alive & (reached == 1.0)
-    if sub is not None and bool(done.any()) and sub["q"].shape[-1] == res["q"].shape[-1]:
+    if sub is not None and bool(done.any()) and sub.q.shape[-1] == res.q.shape[-1]:
         keep = rows[done]
-        for key in ("q", "g", "converged", "residual", "iterations", "tip", "R", "verdict"):
-            if res[key] is None or sub[key] is None:    # a kernel without stability verdicts
-                res[key] = None
+        for name in _RAMP_MERGED:
+            mine, theirs = getattr(res, name), getattr(sub, name)
+            if mine is None or theirs is None:    # a kernel without stability verdicts
+                setattr(res, name, None)
                 continue
-            merged = res[key].clone()
-            merged[keep] = sub[key][done]
-            res[key] = merged
+            merged = mine.clone()
+            merged[keep] = theirs[done]
+            setattr(res, name, merged)
         # The compact Hessians of the two solves may sit on different compact coordinates
         # (compaction depends on the batch): move the ramp's onto the solution's.
-        nq = res["q"].shape[-1]
-        merged = res["Hc"].clone()
+        nq = res.q.shape[-1]
+        merged = res.Hc.clone()
         merged[keep] = compact_hessian(
-            expand_hessian(sub["Hc"][done], sub["maps"]["cidx"][done], nq),
-            res["maps"]["cidx"][keep])
-        res["Hc"] = merged
+            expand_hessian(sub.Hc[done], sub.maps.cidx[done], nq), res.maps.cidx[keep])
+        res.Hc = merged
     return res
 
 
@@ -240,7 +251,8 @@ def _load_ramp(scene, tubes, D, A, F, M, res, opts: SolverOptions, plan: Plan, q
 class SolutionResolver:
     """The re-solves near one solve's solution (:class:`torchpvs.equilibrium.Resolver`): what
     the one-sided forces and :meth:`Equilibrium.solve_again` call back into. ``res`` is the
-    solve's state (its ``q``, layout, tables, discretization and load flags)."""
+    solve's :class:`~torchpvs.order_control.SolveState` (its ``q``, layout, tables,
+    discretization and load flags)."""
 
     scene: Scene
     tubes: TubeTensors
@@ -248,11 +260,11 @@ class SolutionResolver:
     A: torch.Tensor
     F: torch.Tensor
     M: torch.Tensor
-    res: dict
+    res: SolveState
     options: SolverOptions
     plan: Plan
 
-    def near(self, Dn: torch.Tensor, sel: torch.Tensor) -> dict:
+    def near(self, Dn: torch.Tensor, sel: torch.Tensor) -> ForceState:
         """See :meth:`torchpvs.equilibrium.Resolver.near`."""
         # Forces at equilibria a distance delta ~ 1e-7 m away (insertions Dn, rows sel of the
         # batch). Where the section structure there equals this one (same active
@@ -263,31 +275,31 @@ class SolutionResolver:
         # appearing), by ONE Newton step from q.
         res, opts, tubes = self.res, self.options, self.tubes
         kernel = KERNELS[opts.kernel]
-        An, Fn, Mn, q0 = self.A[sel], self.F[sel], self.M[sel], res["q"][sel]
-        disc = res["disc"]
+        An, Fn, Mn, q0 = self.A[sel], self.F[sel], self.M[sel], res.q[sel]
+        disc = res.disc
         nq = q0.shape[-1]
         loaded = loaded_rows(Fn, Mn, opts)
         lay, maps = self.plan.layout(tube_rows(tubes, sel), Dn, An, Fn, Mn, loaded, disc, nq)
         q1 = q0 * lay.qmask
-        moved = (lay.qmask != res["lay"].qmask[sel]).any(-1).nonzero().flatten()
+        moved = (lay.qmask != res.lay.qmask[sel]).any(-1).nonzero().flatten()
         if moved.numel():
             first, k = int(moved[0]), moved.numel()
             if int(moved[-1]) - first + 1 == k:      # usually one run of rows: views, no copy
                 moved = slice(first, first + k)
-            prob = Problem(lay, res["tab"], maps, res["with_load"],
-                           res["has_moment"]).subset(moved)
+            prob = Problem(lay, res.tab, maps, res.with_load, res.has_moment).subset(moved)
             q1 = q1.clone()
             qm, ok = q1[moved], torch.zeros(q1[moved].shape[0], dtype=torch.bool,
                                             device=q1.device)
-            if not res["with_load"]:
-                new = (lay.qmask[moved] > 0) & ~(res["lay"].qmask[sel][moved] > 0)
+            if not res.with_load:
+                new = (lay.qmask[moved] > 0) & ~(res.lay.qmask[sel][moved] > 0)
                 qm, ok = kernel.section_step(qm, prob, new, float(tubes.length.max()))
             rest = (~ok).nonzero().flatten()
             if rest.numel():
                 qm = qm.clone()
                 qm[rest] = kernel.step(qm[rest], prob.subset(rest))[0]
             q1[moved] = qm
-        return {"q": q1, "D": Dn, "alpha": An, "F": Fn, "M": Mn, "loaded": loaded, "lay": lay}
+        return ForceState(q=q1, D=Dn, alpha=An, F=Fn, M=Mn, loaded=loaded, lay=lay, tab=res.tab,
+                          disc=disc, with_load=res.with_load, has_moment=res.has_moment)
 
     def again(self, options: SolverOptions, initial=None) -> Equilibrium:
         """See :meth:`torchpvs.equilibrium.Resolver.again`."""
