@@ -31,9 +31,7 @@ import matplotlib
 matplotlib.use("Agg")
 
 import numpy as np  # noqa: E402
-from _common import parser  # noqa: E402
-from matplotlib.backends.backend_agg import FigureCanvasAgg  # noqa: E402
-from matplotlib.figure import Figure  # noqa: E402
+from _common import figure, parser, save  # noqa: E402
 from matplotlib.lines import Line2D  # noqa: E402
 from matplotlib.ticker import MaxNLocator  # noqa: E402
 
@@ -63,12 +61,6 @@ def progress(items, desc: str):
         return tqdm(items, desc=desc, leave=False, ncols=80)
     print(f"[{desc}] {len(items)} steps ...", flush=True)
     return items
-
-
-def new_figure(w: float, h: float) -> Figure:
-    fig = Figure(figsize=(w, h))
-    FigureCanvasAgg(fig)
-    return fig
 
 
 def set_equal_3d(ax, clouds: list[np.ndarray], pad: float = 0.04, zoom: float = 1.0) -> None:
@@ -124,12 +116,6 @@ def theta_deg(x) -> float:
     return math.degrees(float(np.asarray(v).ravel()[0]))
 
 
-def save(fig: Figure, path: Path) -> None:
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(path, dpi=DPI)
-    print(f"  wrote {path} ({path.stat().st_size / 1024:.0f} KB)")
-
-
 # ---------------------------------------------------------------------------------------------
 # Fig. 2
 
@@ -169,7 +155,7 @@ def figure2(out: Path) -> None:
             break
 
     colors = {"a": "tab:blue", "b": "tab:orange", "u": "tab:red"}
-    fig = new_figure(6.6, 7.6)
+    fig = figure((6.6, 7.6))
     ax = fig.add_axes([0.0, 0.21, 1.0, 0.75], projection="3d")
     clouds = []
     handles = []
@@ -208,7 +194,7 @@ def figure2(out: Path) -> None:
     fig.legend(handles=handles, loc="lower center", fontsize=8.5, ncol=1, frameon=False,
                bbox_to_anchor=(0.5, 0.0))
     print("  paper: theta_2(L1) = ±84.4° (standard), ±85.5° (linear PVS)")
-    save(fig, out / "fig2_section3b_equilibria.png")
+    save(fig, out, "fig2_section3b_equilibria.png", dpi=DPI, tight=False)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -237,7 +223,7 @@ def figure4(out: Path, step: int, order: int) -> None:
           f"PVS order {order} ===")
     scene = torchpvs.load_scene("renda2021_fig3")
     cases = (("full", D2_FULL, 280), ("partial", D2_PARTIAL, 200))
-    fig = new_figure(9.6, 6.6)
+    fig = figure((9.6, 6.6))
     cmap = matplotlib.colormaps["viridis"]
     summary = []
     for i, (name, d2, amax) in enumerate(cases):
@@ -300,7 +286,7 @@ def figure4(out: Path, step: int, order: int) -> None:
                bbox_to_anchor=(0.505, 0.27))
     fig.suptitle("Fig. 3 robot ($D_1$ = 93.5 mm, $\\alpha_1$ = 0): inner tube rotation, "
                  "branch followed from $\\alpha_2$ = 0", fontsize=11, y=0.985)
-    save(fig, out / "fig4_sweeps.png")
+    save(fig, out, "fig4_sweeps.png", dpi=DPI, tight=False)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -318,7 +304,7 @@ def order_convergence(out: Path, orders, fine_magnus: int = 64) -> None:
              ("Fig. 3, $\\alpha_2$ = 80°", fig3, None, ref3, "tab:green", "s")]
     magnus = (8, fine_magnus)    # default Magnus steps per section for the tip pose, and finer
 
-    fig = new_figure(7.0, 4.8)
+    fig = figure((7.0, 4.8))
     ax = fig.add_subplot()
     ax2 = ax.twinx()
     for label, scene, init, ref, col, mk in cases:
@@ -367,7 +353,7 @@ def order_convergence(out: Path, orders, fine_magnus: int = 64) -> None:
     ax.set_title("PVS convergence with basis order (reference: shooting, tol 1e-12)",
                  fontsize=10)
     fig.subplots_adjust(left=0.12, right=0.89, top=0.93, bottom=0.3)
-    save(fig, out / "order_convergence.png")
+    save(fig, out, "order_convergence.png", dpi=DPI, tight=False)
 
 
 # ---------------------------------------------------------------------------------------------
