@@ -10,9 +10,13 @@ and insertions are projected onto their rules: ``0 <= D_1 <= D_2 <= ...`` with e
 
 Starts for each goal: the initial actuation, the same actuation turned about the axis so that the
 tip azimuth matches the goal's (a common rotation of every tube turns the tip exactly about z),
-and seeded random actuations. A start counts as a solution when its equilibrium is converged,
-stable and within ``tol`` of the goal; of the solutions, the one with the least actuator travel
-from the initial actuation is returned.
+and seeded random actuations. A start that stalls (its error has not fallen by 10 % in
+``_PATIENCE`` iterations while still beyond ``tol``) is replaced by a fresh seeded random start of
+the same goal, up to ``restarts`` times per goal; its best point is kept. Which start of a goal
+succeeds is sensitive to rounding (a step lands on one branch or another), so the restarts are
+what makes a reachable goal's success not hinge on one trajectory. A start counts as a solution
+when its equilibrium is converged, stable and within ``tol`` of the goal; of the solutions, the
+one with the least actuator travel from the initial actuation is returned.
 """
 
 from __future__ import annotations
@@ -31,6 +35,10 @@ from .scene import Scene, load_scene
 from .solver import solve
 
 __all__ = ["IKResult", "inverse_kinematics"]
+
+# A start is replaced after this many iterations without a 10 % fall of its error; restarts
+# stop this many iterations before max_iter (a random start needs them to converge).
+_PATIENCE = 8
 
 
 @dataclass(frozen=True)
@@ -55,7 +63,7 @@ class IKResult:
 def inverse_kinematics(scene: Scene | str, goal, *, starts: int = 8, tol: float = 1e-4,
                        max_iter: int = 60, initial_insertion=None, initial_rotation=None,
                        min_exposed: float = 5e-3, max_step: tuple[float, float] = (5e-3, 0.3),
-                       travel_scale: float = 0.05, seed: int = 0,
+                       travel_scale: float = 0.05, seed: int = 0, restarts: int | None = None,
                        options: SolverOptions | None = None,
                        time_limit: float | None = 120.0) -> IKResult:
     """Stable actuations that put the tip at ``goal`` ``(3,)`` or ``(G, 3)`` [m] (base frame).
@@ -76,6 +84,8 @@ def inverse_kinematics(scene: Scene | str, goal, *, starts: int = 8, tol: float 
         seed: seed of the random starts. Each goal's starts are drawn from ``seed`` and the
             values of its own row (goal, initial actuation), so a goal gets the same answer
             wherever it sits in the batch.
+        restarts: fresh seeded random starts per goal for starts that stall (default
+            ``starts``; 0: none).
         options: solver options of the equilibria (default ``order=2, n_magnus=8``, no forces).
         time_limit: [s] wall-clock bound on the whole call (default 120 s; ``None``: none):
             checked before every iteration, and every solve is bounded by what is left.
@@ -105,6 +115,9 @@ def inverse_kinematics(scene: Scene | str, goal, *, starts: int = 8, tol: float 
                          f"{travel_scale!r}")
     if not (isinstance(seed, int) and not isinstance(seed, bool)):
         raise ValueError(f"seed must be an integer, got {seed!r}")
+    restarts = starts if restarts is None else restarts
+    if not (isinstance(restarts, int) and not isinstance(restarts, bool) and restarts >= 0):
+        raise ValueError(f"restarts must be an integer >= 0, got {restarts!r}")
     dt = torch.float64
     goal = torch.as_tensor(goal, dtype=dt)
     goal = goal[None] if goal.ndim == 1 else goal
@@ -155,6 +168,16 @@ def inverse_kinematics(scene: Scene | str, goal, *, starts: int = 8, tol: float 
         A[:, 2:] = (a * 2 - 1) * math.pi
     B = G * K
     D, A = D.reshape(B, N), A.reshape(B, N)
+    if restarts:
+        # the restart pool: seeded like the random starts, from another stream
+        u, a = _random_starts(seed + 1, goal, D0, A0, restarts)
+        pool_D = _project(torch.cummax(u * D_max, -1).values, D_max)
+        pool_A = (a * 2 - 1) * math.pi
+    used = torch.zeros(G, dtype=torch.long)                # restarts drawn per goal
+    stall = torch.zeros(B, dtype=torch.long)               # iterations without a 10 % fall
+    mark = torch.full((B,), math.inf, dtype=dt)            # the error that last fell 10 %
+    kD, kA = D.clone(), A.clone()                          # best point of a replaced start
+    kerr = torch.full((B,), math.inf, dtype=dt)
     target = goal[:, None].expand(G, K, 3).reshape(B, 3)
     s = torch.cat([torch.ones(N, dtype=dt), torch.full((N,), travel_scale, dtype=dt)])
     lam = torch.full((B,), 1e-3, dtype=dt)
@@ -165,7 +188,7 @@ def inverse_kinematics(scene: Scene | str, goal, *, starts: int = 8, tol: float 
     xD, xA = D, A                                       # accepted actuations
     deadline = None if time_limit is None else t_start + time_limit
     timed_out = False
-    for _ in range(max_iter + 1):
+    for it in range(max_iter + 1):
         if deadline is not None and time.perf_counter() > deadline:
             timed_out = True
             break
@@ -199,6 +222,15 @@ def inverse_kinematics(scene: Scene | str, goal, *, starts: int = 8, tol: float 
         done = (err < tol)[:, None]
         D = torch.where(done, xD, _project(xD + dD / cap[:, None], D_max))
         A = torch.where(done, xA, xA + dA / cap[:, None])
+        fell = err < 0.9 * mark
+        mark = torch.where(fell, err, mark)
+        stall = torch.where(fell, 0, stall + 1)
+        if restarts and it < max_iter - 2 * _PATIENCE:
+            q = _restart(scene, opts, deadline, (stall >= _PATIENCE) & (err >= tol), K, used,
+                         restarts, (pool_D, pool_A), (D, A, q),
+                         (xD, xA, err, lam, mark, stall), (kD, kA, kerr))
+    worse = kerr < err                                     # a replaced start did better before
+    xD, xA = torch.where(worse[:, None], kD, xD), torch.where(worse[:, None], kA, xA)
     final = solve(scene, insertion=xD, rotation=xA,
                   options=within_deadline(opts, None if deadline is None
                                           else max(deadline, time.perf_counter())
@@ -213,6 +245,47 @@ def inverse_kinematics(scene: Scene | str, goal, *, starts: int = 8, tol: float 
     return IKResult(insertion=xD[idx], rotation=xA[idx], tip=final.tip_position[idx],
                     error=err[idx], solved=ok[idx], travel=travel[torch.arange(G), best],
                     starts_solved=ok.reshape(G, K).sum(-1), timed_out=timed_out)
+
+
+def _restart(scene, opts, deadline, stalled, K, used, restarts, pool, trial, state, kept):
+    """Replace the ``stalled`` ``(B,)`` starts (rows ``g K + k`` of goal ``g``) by their goal's
+    next pool start while the goal has one: in place on the trial actuations ``(D, A)``, the
+    accepted state ``(xD, xA, err, lam, mark, stall)`` and the kept best ``(kD, kA, kerr)``.
+    Returns the warm start for the next solve, with the replaced rows' coordinates from a cold
+    solve at their new actuations (a stale warm start could land them on another branch)."""
+    D, A, q = trial
+    xD, xA, err, lam, mark, stall = state
+    kD, kA, kerr = kept
+    rows = []
+    for r in stalled.nonzero().flatten().tolist():      # few rows: a loop keeps the pool order
+        g = r // K
+        if used[g] < restarts:
+            rows.append((r, g, int(used[g])))
+            used[g] += 1
+    if not rows:
+        return q
+    r_idx = torch.tensor([r for r, _, _ in rows])
+    better = err[r_idx] < kerr[r_idx]
+    kD[r_idx] = torch.where(better[:, None], xD[r_idx], kD[r_idx])
+    kA[r_idx] = torch.where(better[:, None], xA[r_idx], kA[r_idx])
+    kerr[r_idx] = torch.minimum(err[r_idx], kerr[r_idx])
+    g_idx = torch.tensor([g for _, g, _ in rows])
+    p_idx = torch.tensor([p for _, _, p in rows])
+    D[r_idx] = xD[r_idx] = pool[0][g_idx, p_idx]
+    A[r_idx] = xA[r_idx] = pool[1][g_idx, p_idx]
+    err[r_idx] = math.inf
+    mark[r_idx] = math.inf
+    lam[r_idx] = 1e-3
+    stall[r_idx] = 0
+    if q is not None:
+        q = q.clone()
+        for r in r_idx.tolist():
+            # one row per solve: a batched solve rounds differently with the batch's
+            # composition, and a goal's answer must not depend on its neighbours
+            cold = solve(scene, insertion=D[r:r + 1], rotation=A[r:r + 1],
+                         options=within_deadline(opts, deadline))
+            q[r] = cold.q.detach()[0]
+    return q
 
 
 def _random_starts(seed: int, goal: torch.Tensor, D0: torch.Tensor, A0: torch.Tensor,
