@@ -82,11 +82,11 @@ class SolverOptions:
         load_coordinates: give distal single-tube sections coordinates even without a tip
             load (they are exact without; needed for the tip compliance at zero load and for
             gradients w.r.t. a load that is zero).
-        kernel: name of the kernel in :data:`torchpvs.kernel.KERNELS`: ``"newton"``
-            (default: the eager reference, batched torch on any device; see
-            :class:`torchpvs.kernel.Kernel`) or ``"compiled"`` (the Newton solve, steps and
-            tip pose compiled per element by numba on CPU tensors, the eager kernel elsewhere:
-            :mod:`torchpvs.compiled`; not yet the default, see docs/performance.md).
+        kernel: name of the kernel in :data:`torchpvs.kernel.KERNELS`: ``"compiled"``
+            (default: the Newton solve and steps compiled per element by numba, on CPU tensors
+            without a tip load; the eager kernel elsewhere, :mod:`torchpvs.compiled`) or
+            ``"newton"`` (the eager reference, batched torch on any device; see
+            :class:`torchpvs.kernel.Kernel`).
         load_steps: load continuation for loaded elements that do not converge from the
             initial guess: the tip load is ramped up in this many equal steps, each warm-started
             from the last (1 = no ramp). ``Equilibrium.reason`` says how far a failed ramp got.
@@ -119,7 +119,7 @@ class SolverOptions:
     backward_ridge: float = 0.0
     singular_tol: float = 1e-10
     load_coordinates: bool = False
-    kernel: str = "newton"
+    kernel: str = "compiled"
     load_steps: int = 8
     max_total_iter: int = 200
     time_limit: float | None = 30.0

@@ -33,7 +33,7 @@ def _reduced_step(rb, f, T, h):
 
 @pytest.mark.parametrize("kind", ["overdamped", "second_order"])
 @pytest.mark.parametrize("f_outer,f_inner,stop", [
-    (0.98, -2.255, "nesting"),    # the pair at half force: inner wins, pair inserts
+    (0.98, -2.255, "nesting"),    # the reported pair at half force: inner wins, pair inserts
     (-0.98, 2.255, "tip"),        # tips flush, inner pulls back harder: pair retracts
     (1.5, -0.5, "nesting"),       # outer pulls back harder: it pushes the inner back
 ])

@@ -82,7 +82,7 @@ def test_batch_equals_single_envs_seeded_the_same_way(kind):
 
 
 def test_robot_zero_of_a_batch_is_the_single_env_with_the_same_seed():
-    """The issue's repro: ``reset(seed=7)`` of robot 0 and ``gym.make(id).reset(seed=7)``
+    """Regression: ``reset(seed=7)`` of robot 0 and ``gym.make(id).reset(seed=7)``
     gave different goals."""
     v = gym.make_vec(ID, num_envs=2, vectorization_mode="vector_entry_point")
     ov, _ = v.reset(seed=7)

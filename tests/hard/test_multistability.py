@@ -73,7 +73,7 @@ def test_gradient_near_fold(distance_deg):
     docs/physics.md's hard case) to 1, 0.01 and 1e-4 deg. Pass: it matches central finite
     differences
     of warm-started solves (step 1/100 of the distance to the fold) within 1e-3 relative, or the
-    solver raised NearSingularStiffnessWarning (the explicit flag the issue allows). The gradient
+    solver raised NearSingularStiffnessWarning (an explicit flag, not a silent NaN). The gradient
     grows like 1/sqrt(distance): at 1e-4 deg it is ~100x the one at 1 deg."""
     alpha = ALPHA_FOLD - distance_deg
     base = _branch_to(alpha)
