@@ -53,6 +53,20 @@ def test_half_precision_inputs_are_refused_by_name(dtype):
         tp.solve(SC, rotation=torch.tensor([0.0, 1.0], dtype=dtype))
 
 
+@pytest.mark.parametrize("field", ["forces", "torques"])
+def test_half_precision_commands_are_refused_by_name(field):
+    # Regression: a float16 command set the solve's dtype, and the error named `insertion`.
+    with pytest.raises(ValueError, match=rf"{field}: dtype torch.float16 is not supported"):
+        tp.solve_force_controlled(SC, **{field: torch.zeros(2, dtype=torch.float16)})
+
+
+def test_the_first_floating_input_sets_the_dtype():
+    # an integer insertion does not decide the dtype; the float32 rotation does
+    eq = tp.solve(SC, insertion=torch.tensor([0, 0]), rotation=torch.zeros(2, dtype=torch.float32))
+    assert eq.q.dtype == torch.float32
+    assert tp.solve(SC, insertion=torch.tensor([0, 0])).q.dtype == torch.float64
+
+
 def test_non_finite_initial_guess_is_refused_by_name():
     eq = tp.solve(SC)
     with pytest.raises(ValueError, match="initial"):

@@ -45,7 +45,7 @@ from .options import SolverOptions
 from .plan import tube_tensors
 from .scene import Scene, load_scene
 from .sections import TubeTensors
-from .solver import solve_tensors
+from .solver import solve, solve_tensors
 
 __all__ = ["calibrate", "Calibration", "Identifiability", "CalibrationStep", "PARAMETERS"]
 
@@ -145,7 +145,6 @@ class Calibration:
     def predict(self, insertion, rotation, options: SolverOptions | None = None) -> np.ndarray:
         """Tips ``(K, 3)`` [m] of the fitted model at commanded actuations ``(K, N)`` (the
         fitted offsets applied)."""
-        from .solver import solve
         D = np.atleast_2d(np.asarray(insertion, np.float64)) + self.insertion_offset
         A = np.atleast_2d(np.asarray(rotation, np.float64)) + self.rotation_offset
         eq = solve(self.scene, insertion=torch.as_tensor(D), rotation=torch.as_tensor(A),

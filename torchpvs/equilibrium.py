@@ -8,8 +8,10 @@ from typing import TYPE_CHECKING, Any, Protocol
 
 import torch
 
+from .basis import legendre_basis
 from .batch_linalg import active_index, compact_scaled, take
 from .forces import ForceState, equilibrium_forces, paper_actuation
+from .jacobians import control_jacobians
 from .lie import exp_se3
 from .mechanics import (
     angle_offsets,
@@ -372,7 +374,6 @@ class Equilibrium:
             hs = h.clamp(min=torch.finfo(h.dtype).tiny)       # (1e-300 is 0 in float32)
             xi = -1.0 + 2.0 * (x[..., None] * loc) / hs[..., None]             # (B, K, 2m)
             xi_all = xi.reshape(B, 1, -1).expand(B, lay.h.shape[-1], -1)   # (B, S, K*2m)
-            from .basis import legendre_basis
             phi, Qb = legendre_basis(xi_all, self.context.discretization.n_basis)
             f = node_fields(q, lay, xi_all, phi, Qb)
             u = f.u.reshape(B, -1, points, 2 * m, 2)                        # (B, S, K, 2m, 2)
@@ -387,7 +388,6 @@ class Equilibrium:
         """Actuator stiffness, tip Jacobian, force-control Jacobian and tip compliance
         (:func:`torchpvs.jacobians.control_jacobians`; ``compliance=False`` skips the
         compliance, which an unloaded equilibrium gets from one extra solve)."""
-        from .jacobians import control_jacobians
         return control_jacobians(self, compliance=compliance)
 
     # ------------------------------------------------------------------------------------------

@@ -52,7 +52,7 @@ from dataclasses import dataclass, replace
 import torch
 
 from .equilibrium import Equilibrium
-from .inputs import batch_inputs, check_float_dtypes
+from .inputs import scene_inputs
 from .jacobians import actuator_stiffness, control_jacobians
 from .options import SolverError, SolverOptions, check_time_limit, within_deadline
 from .scene import Scene, load_scene
@@ -211,22 +211,12 @@ def solve_force_controlled(
                          f"got {max_step!r}")
     if on_failure not in ("warn", "raise", "ignore"):
         raise ValueError(f"on_failure must be 'warn', 'raise' or 'ignore', got {on_failure!r}")
-    ref = next((x for x in (forces, torques, insertion, rotation, tip_force, tip_moment)
-                if isinstance(x, torch.Tensor) and x.is_floating_point()), None)
-    dtype = opts.dtype or (ref.dtype if ref is not None else torch.float64)
-    device = torch.device(opts.device) if opts.device is not None else (
-        ref.device if ref is not None else torch.device("cpu"))
+    D0, A0, F, M, dtype, device = scene_inputs(
+        scene, insertion, rotation, tip_force, tip_moment, dtype=opts.dtype, device=opts.device,
+        forces=forces, torques=torques)
     N = scene.n_tubes
     cmd_f = _commands(forces, N, "forces", dtype, device)
     cmd_t = _commands(torques, N, "torques", dtype, device)
-
-    check_float_dtypes(insertion=insertion, rotation=rotation, tip_force=tip_force,
-                       tip_moment=tip_moment)
-    D0, A0, F, M = batch_inputs(
-        scene, scene.actuation.insertion if insertion is None else insertion,
-        scene.actuation.rotation if rotation is None else rotation,
-        scene.load.tip_force if tip_force is None else tip_force,
-        scene.load.tip_moment if tip_moment is None else tip_moment, dtype, device)
     B = max(D0.shape[0], cmd_f.shape[0], cmd_t.shape[0])
     for nm, t in (("forces", cmd_f), ("torques", cmd_t), ("insertion", D0)):
         if t.shape[0] not in (1, B):

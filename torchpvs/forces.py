@@ -15,6 +15,7 @@ from typing import NamedTuple
 
 import torch
 
+from .basis import gauss_legendre, legendre_basis
 from .mechanics import (
     NodeConstants,
     node_constants,
@@ -255,8 +256,6 @@ def paper_actuation(tubes, res: ForceState, tol: float = 1e-12):
     ``tau_D1 = -tau_D2``, the paper's eq. 43, exact). The precurvature is the scene's polynomial
     (measured from the start of the curved part). Returns ``(forces, torques)``, ``(B, N)``.
     """
-    from .basis import gauss_legendre, legendre_basis
-    from .mechanics import poly
 
     q, lay, disc = res.q.detach(), res.lay, res.disc
     D = res.D

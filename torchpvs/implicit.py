@@ -24,7 +24,8 @@ from typing import NamedTuple
 import torch
 
 from .batch_linalg import active_index, compact
-from .mechanics import expand_hessian, potential, tip_pose
+from .lie import hat
+from .mechanics import expand_hessian, node_fields, potential, skew_vee, tip_pose
 from .sections import Discretization, Tables, TubeTensors, build_layout
 
 __all__ = ["DifferentiableOutputs", "ImplicitContext", "ImplicitEquilibrium",
@@ -212,7 +213,6 @@ def adjoint_factor(q_star, info: ImplicitContext, D, alpha, F, M, tubes: TubeTen
         # A dead tip moment is not conservative: the exact tangent adds the antisymmetric
         # K_ab = 1/2 M . (theta_a x theta_b) = -1/2 J_theta^T [M]x J_theta (see mechanics).
         Jt = _rotation_jacobian(q_star, info, D, alpha, F, M, tubes)
-        from .lie import hat
         K = -0.5 * Jt.transpose(1, 2) @ hat(M) @ Jt
         K = K * qmask[:, :, None] * qmask[:, None, :]
         A = A + K / torch.sqrt(scale[:, :, None] * scale[:, None, :])
@@ -224,8 +224,6 @@ def adjoint_factor(q_star, info: ImplicitContext, D, alpha, F, M, tubes: TubeTen
 def _rotation_jacobian(q_star, info: ImplicitContext, D, alpha, F, M,
                        tubes: TubeTensors) -> torch.Tensor:
     """``J_theta (B, 3, nq)``: spatial angular velocity of the tip frame per coordinate."""
-    from .mechanics import skew_vee
-
     lay = build_layout(tubes, D, alpha, F, M, info.loaded, info.disc)
     tab = info.tab
 
@@ -265,8 +263,6 @@ class DifferentiableOutputs(NamedTuple):
 def differentiable_outputs(q_star: torch.Tensor, info: ImplicitContext, D, alpha, F, M,
                            tubes: TubeTensors) -> DifferentiableOutputs:
     """Every output as a differentiable function of the inputs, through the implicit ``q*``."""
-    from .mechanics import node_fields
-
     q = ImplicitEquilibrium.apply(q_star.detach(), info, D, alpha, F, M, *tubes.tensors())
     dD = torch.zeros_like(D, requires_grad=True)
     dA = torch.zeros_like(alpha, requires_grad=True)

@@ -8,7 +8,8 @@ import torch
 
 from .scene import Scene
 
-__all__ = ["as_batch", "batch_inputs", "check_actuation", "check_float_dtypes"]
+__all__ = ["as_batch", "batch_inputs", "check_actuation", "check_float_dtypes", "scene_inputs"]
+
 
 def as_batch(x, n: int, name: str, dtype, device) -> torch.Tensor:
     t = torch.as_tensor(x, dtype=dtype, device=device)
@@ -38,6 +39,32 @@ def check_float_dtypes(**inputs) -> None:
             raise ValueError(f"{name}: dtype {x.dtype} is not supported; the solver runs in "
                              f"torch.float32 or torch.float64 (convert the input, or set "
                              f"SolverOptions(dtype=...))")
+
+
+def scene_inputs(scene: Scene, insertion, rotation, tip_force, tip_moment, *, dtype=None,
+                 device=None, **others) -> tuple[torch.Tensor, ...]:
+    """The one canonicalisation of a solve's inputs (:func:`torchpvs.solve`,
+    :func:`torchpvs.solve_force_controlled`): the scene's actuation and load where an input is
+    ``None``, then :func:`batch_inputs` in one dtype and device. Every tensor input, the
+    ``others`` too (e.g. commanded forces), is first checked by :func:`check_float_dtypes`
+    under its own name. The dtype is ``dtype`` (``SolverOptions.dtype``) or else that of the
+    first floating-point tensor among the inputs (``others`` first), float64 without one; the
+    device is ``device`` or else that of the first tensor, the CPU without one. Returns
+    ``(D, alpha, F, M, dtype, device)``."""
+    named = {**others, "insertion": insertion, "rotation": rotation, "tip_force": tip_force,
+             "tip_moment": tip_moment}
+    check_float_dtypes(**named)
+    tensors = [x for x in named.values() if isinstance(x, torch.Tensor)]
+    if dtype is None:
+        dtype = next((x.dtype for x in tensors if x.is_floating_point()), torch.float64)
+    device = torch.device(device) if device is not None else (
+        tensors[0].device if tensors else torch.device("cpu"))
+    D, A, F, M = batch_inputs(
+        scene, scene.actuation.insertion if insertion is None else insertion,
+        scene.actuation.rotation if rotation is None else rotation,
+        scene.load.tip_force if tip_force is None else tip_force,
+        scene.load.tip_moment if tip_moment is None else tip_moment, dtype, device)
+    return D, A, F, M, dtype, device
 
 
 def batch_inputs(scene: Scene, insertion, rotation, tip_force, tip_moment, dtype, device,

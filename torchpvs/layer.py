@@ -78,17 +78,18 @@ class CTR(nn.Module):
         props = self._properties()
         with torch.no_grad():
             flat = torch.cat([t.detach().reshape(-1) for t in props]).tolist()
-        cols, at = [], 0
-        for t in props:
-            cols.append(flat[at:at + t.numel()])
+        values, at = {}, 0
+        for name, t in zip(props._fields, props, strict=True):
+            values[name] = flat[at:at + t.numel()]
             at += t.numel()
-        *numbers, pc = cols
-        N = len(numbers[0])
+        pc = values.pop("precurvature")
+        N = len(values["E"])
         per_tube = len(pc) // N if N else 0
+        inner = values["inner_diameter"]
         try:
             for j in range(N):
-                check_tube_numbers(j, *(c[j] for c in numbers),
-                                   outer_inner_diameter=numbers[2][j - 1] if j else None,
+                check_tube_numbers(j, **{name: v[j] for name, v in values.items()},
+                                   outer_inner_diameter=inner[j - 1] if j else None,
                                    precurvature=pc[j * per_tube:(j + 1) * per_tube])
         except SceneError as e:
             raise ValueError(f"CTR: {e}") from None

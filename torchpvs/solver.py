@@ -18,9 +18,9 @@ from dataclasses import dataclass, replace
 import torch
 
 from .equilibrium import Equilibrium
-from .forces import ForceState
+from .forces import ForceState, paper_scope_check
 from .implicit import ImplicitContext, differentiable_outputs
-from .inputs import batch_inputs, check_float_dtypes
+from .inputs import scene_inputs
 from .kernel import KERNELS
 from .mechanics import compact_hessian, expand_hessian
 from .newton import Problem
@@ -66,21 +66,9 @@ def solve(scene: Scene | str, *, insertion=None, rotation=None, tip_force=None, 
         raise TypeError(f"options must be a torchpvs.SolverOptions (e.g. SolverOptions(**d) "
                         f"for a dict d), got {type(options).__name__}")
     opts = options or SolverOptions()
-    check_float_dtypes(insertion=insertion, rotation=rotation, tip_force=tip_force,
-                       tip_moment=tip_moment)
-    ref = next((x for x in (insertion, rotation, tip_force, tip_moment)
-                if isinstance(x, torch.Tensor)), None)
-    dtype = opts.dtype or (ref.dtype if ref is not None
-                           and ref.dtype in (torch.float32, torch.float64) else torch.float64)
-    device = torch.device(opts.device) if opts.device is not None else (
-        ref.device if ref is not None else torch.device("cpu"))
-    D, A, F, M = batch_inputs(
-        scene, scene.actuation.insertion if insertion is None else insertion,
-        scene.actuation.rotation if rotation is None else rotation,
-        scene.load.tip_force if tip_force is None else tip_force,
-        scene.load.tip_moment if tip_moment is None else tip_moment, dtype, device)
+    D, A, F, M, dtype, device = scene_inputs(scene, insertion, rotation, tip_force, tip_moment,
+                                             dtype=opts.dtype, device=opts.device)
     if opts.force_model == "paper" and opts.compute_forces:
-        from .forces import paper_scope_check
         loaded = (F.abs().sum(-1) > 0) | (M.abs().sum(-1) > 0)
         paper_scope_check(tube_tensors(scene, dtype, device), D, loaded)
     plan = plan_for(scene, dtype, device)
