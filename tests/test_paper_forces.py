@@ -32,10 +32,12 @@ PAPER = tp.SolverOptions(force_model="paper", accuracy=1e-6)
 
 def scene(outer, inner, alpha_deg, D=D_FIT, free=FREE_FIT, straight=(0.0, 0.0)):
     tubes = (
-        tp.Tube(E, G, 2.01e-3, 2.39e-3, straight[0], D + free - straight[0],
-                ((), tuple(map(float, outer)), ()), "outer"),
-        tp.Tube(E, G, 0.0, 1.6e-3, straight[1], L2 - straight[1],
-                ((), tuple(map(float, inner)), ()), "inner"),
+        tp.Tube(E=E, G=G, inner_diameter=2.01e-3, outer_diameter=2.39e-3,
+                straight_length=straight[0], curved_length=D + free - straight[0],
+                precurvature=((), tuple(map(float, outer)), ()), name="outer"),
+        tp.Tube(E=E, G=G, inner_diameter=0.0, outer_diameter=1.6e-3,
+                straight_length=straight[1], curved_length=L2 - straight[1],
+                precurvature=((), tuple(map(float, inner)), ()), name="inner"),
     )
     return tp.Scene(tubes, tp.Actuation((D, D), (0.0, math.radians(alpha_deg))))
 

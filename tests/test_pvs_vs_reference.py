@@ -399,10 +399,14 @@ def test_actuation_force_at_kink_is_a_one_sided_derivative():
 
 def test_requested_accuracy_is_delivered():
     """SolverOptions docstring: accuracy = target tip-position accuracy [m]."""
-    sc = Scene((Tube(E_NITINOL, G_NITINOL, 0.7507 * MM, 1.2073 * MM, 37.17 * MM, 44.39 * MM,
-                     ((), (12.10,), ()), "outer"),
-                Tube(E_NITINOL, G_NITINOL, 0.3206 * MM, 0.6577 * MM, 111.95 * MM, 124.01 * MM,
-                     ((), (19.02, 113.05), ()), "inner")),
+    sc = Scene((Tube(E=E_NITINOL, G=G_NITINOL, inner_diameter=0.7507 * MM,
+                     outer_diameter=1.2073 * MM,
+                     straight_length=37.17 * MM, curved_length=44.39 * MM,
+                     precurvature=((), (12.10,), ()), name="outer"),
+                Tube(E=E_NITINOL, G=G_NITINOL, inner_diameter=0.3206 * MM,
+                     outer_diameter=0.6577 * MM,
+                     straight_length=111.95 * MM, curved_length=124.01 * MM,
+                     precurvature=((), (19.02, 113.05), ()), name="inner")),
                Actuation((29.68 * MM, 48.09 * MM), (-1.1816, 1.0771)))
     r = solve_standard(sc, tol=1e-12, compute_forces=False)
     p = torchpvs.solve(sc, options=SolverOptions(accuracy=1e-8, compute_forces=False))

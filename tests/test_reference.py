@@ -149,7 +149,9 @@ def random_three_tubes(seed: int = 3) -> Scene:
         pc = (tuple(rng.uniform(-3, 3, 2)),  # x: constant + linear
               (float(rng.uniform(4, 12)), float(rng.uniform(-20, 20))),  # y
               (float(rng.uniform(-1, 1)),))  # z: precurved twist
-        tubes.append(Tube(E, G, ids[j], ods[j], ls, lc, pc, f"t{j}"))
+        tubes.append(Tube(E=E, G=G, inner_diameter=ids[j], outer_diameter=ods[j],
+                          straight_length=ls, curved_length=lc,
+                          precurvature=pc, name=f"t{j}"))
     L = [t.length for t in tubes]
     D1 = 0.8 * tubes[0].straight_length
     D = (D1, D1 + 0.6 * (L[1] - L[0]) + 0.01, D1 + 0.5 * (L[2] - L[0]) + 0.02)
@@ -189,14 +191,18 @@ def test_configurational_force_single_tube():
     dU*/dD = +1/2 EI kappa^2 (positive = the actuator pulls back, docs/conventions.md). A tube whose
     straight part spans the orifice feels nothing."""
     kappa = 20.0
-    t = Tube(E, G, 0.0, 1.6e-3, 0.0, 0.15, ((), (kappa,), ()))
+    t = Tube(E=E, G=G, inner_diameter=0.0, outer_diameter=1.6e-3,
+             straight_length=0.0, curved_length=0.15,
+             precurvature=((), (kappa,), ()))
     sc = Scene((t,), Actuation((0.05,), (0.3,)))
     sol = solve_standard(sc)
     assert sol.converged
     ref = 0.5 * t.bending_stiffness * kappa**2
     assert abs(sol.actuation_forces[0] - ref) <= 1e-6 * ref
     assert abs(sol.energy - ref * 0.05) <= 1e-9 * ref * 0.05
-    t2 = Tube(E, G, 0.0, 1.6e-3, 0.1, 0.05, ((), (kappa,), ()))
+    t2 = Tube(E=E, G=G, inner_diameter=0.0, outer_diameter=1.6e-3,
+              straight_length=0.1, curved_length=0.05,
+              precurvature=((), (kappa,), ()))
     sol2 = solve_standard(Scene((t2,), Actuation((0.05,), (0.3,))))
     assert abs(sol2.actuation_forces[0]) < 1e-6 * ref
 
@@ -246,7 +252,9 @@ def test_small_tip_force_euler_bernoulli():
     """Euler-Bernoulli cantilever: a lateral tip force F deflects a straight tube's tip by
     F L^3 / (3 EI) along F (rotation F L^2/(2 EI) ~ 1e-3 rad keeps the nonlinearity ~1e-6)."""
     L = 0.1
-    t = Tube(E, G, 0.0, 1.6e-3, L, 0.0, ((), (), ()))
+    t = Tube(E=E, G=G, inner_diameter=0.0, outer_diameter=1.6e-3,
+             straight_length=L, curved_length=0.0,
+             precurvature=((), (), ()))
     EI = t.bending_stiffness
     Fmag = 2e-3 * EI / L**2
     d = np.array([math.cos(0.4), math.sin(0.4), 0.0])
@@ -267,7 +275,9 @@ def test_tip_moment_pure_bending():
     """A tip moment M = My e_y on a straight tube gives the exact circular arc of curvature
     My / EI (elastica: constant internal moment in the body frame), bending toward +x."""
     L = 0.1
-    t = Tube(E, G, 0.0, 1.6e-3, L, 0.0, ((), (), ()))
+    t = Tube(E=E, G=G, inner_diameter=0.0, outer_diameter=1.6e-3,
+             straight_length=L, curved_length=0.0,
+             precurvature=((), (), ()))
     EI = t.bending_stiffness
     My = 5.0 * EI  # curvature 5 1/m
     sc = Scene((t,), Actuation((0.0,), (0.0,)), Load((0.0, 0.0, 0.0), (0.0, My, 0.0)))

@@ -41,7 +41,9 @@ def test_configurational_force_single_tube():
     (Bigoni et al. 2015; docs/physics.md): retracting stores 1/2 EI kappa^2 per metre in the
     guide."""
     kappa = 20.0
-    t = Tube(E, G, 0.0, 1.6e-3, 0.0, 0.2, ((), (kappa,), ()), "rod")
+    t = Tube(E=E, G=G, inner_diameter=0.0, outer_diameter=1.6e-3,
+             straight_length=0.0, curved_length=0.2,
+             precurvature=((), (kappa,), ()), name="rod")
     sc = Scene((t,), Actuation((0.05,), (0.3,)))
     eq = tp.solve(sc)
     expected = 0.5 * t.bending_stiffness * kappa**2
@@ -95,7 +97,9 @@ def test_forces_match_finite_differences_of_equilibrium_energy():
 @pytest.mark.parametrize("force", [1e-4, 1e-3])
 def test_small_tip_force_matches_euler_bernoulli(force):
     """Cantilever deflection F L^3 / (3 EI) for small loads (elastica -> Euler–Bernoulli)."""
-    t = Tube(E, G, 0.0, 1.6e-3, 0.1, 0.0, ((), (), ()), "rod")
+    t = Tube(E=E, G=G, inner_diameter=0.0, outer_diameter=1.6e-3,
+             straight_length=0.1, curved_length=0.0,
+             precurvature=((), (), ()), name="rod")
     sc = Scene((t,), Actuation((0.0,), (0.0,)))
     eq = tp.solve(sc, tip_force=[0.0, force, 0.0], options=tp.SolverOptions(order=4))
     expected = force * 0.1**3 / (3 * t.bending_stiffness)
@@ -105,7 +109,9 @@ def test_small_tip_force_matches_euler_bernoulli(force):
 
 def test_pure_tip_moment_bends_into_circle():
     """A straight rod under a tip moment M has curvature M / EI everywhere (exact elastica)."""
-    t = Tube(E, G, 0.0, 1.6e-3, 0.1, 0.0, ((), (), ()), "rod")
+    t = Tube(E=E, G=G, inner_diameter=0.0, outer_diameter=1.6e-3,
+             straight_length=0.1, curved_length=0.0,
+             precurvature=((), (), ()), name="rod")
     sc = Scene((t,), Actuation((0.0,), (0.0,)))
     M = 5e-3
     eq = tp.solve(sc, tip_moment=[0.0, M, 0.0], options=tp.SolverOptions(order=3))

@@ -52,8 +52,12 @@ def two_tubes(k1: float, k2: float, *, E1: float = E_NITINOL, E2: float = E_NITI
     default to nitinol's ratio to ``E`` (Table I)."""
     G1 = E1 * G_NITINOL / E_NITINOL if G1 is None else G1
     G2 = E2 * G_NITINOL / E_NITINOL if G2 is None else G2
-    tubes = (Tube(E1, G1, id1, od1, Ls1, Lc1, ((), (k1,), ()), "outer"),
-             Tube(E2, G2, id2, od2, Ls2, Lc2, ((), (k2,), ()), "inner"))
+    tubes = (Tube(E=E1, G=G1, inner_diameter=id1, outer_diameter=od1,
+                  straight_length=Ls1, curved_length=Lc1,
+                  precurvature=((), (k1,), ()), name="outer"),
+             Tube(E=E2, G=G2, inner_diameter=id2, outer_diameter=od2,
+                  straight_length=Ls2, curved_length=Lc2,
+                  precurvature=((), (k2,), ()), name="inner"))
     return Scene(tubes, Actuation(tuple(D), tuple(alpha)), load or Load())
 
 
@@ -85,8 +89,9 @@ def random_scene(seed: int) -> Scene:
             y.append(rng.uniform(-1, 1) * k0 / curved)
         if rng.random() < 0.2:
             x = [rng.uniform(-5, 5)]
-        tubes.append(Tube(E_NITINOL, G_NITINOL, idj, od, straight, curved,
-                          (tuple(x), tuple(y), ()), f"tube{j + 1}"))
+        tubes.append(Tube(E=E_NITINOL, G=G_NITINOL, inner_diameter=idj, outer_diameter=od,
+                          straight_length=straight, curved_length=curved,
+                          precurvature=(tuple(x), tuple(y), ()), name=f"tube{j + 1}"))
         L_prev = L
         od = idj - rng.uniform(0.03, 0.1) * MM
     D, lo = [], 0.0
@@ -110,8 +115,10 @@ def nested_scene(n_tubes: int, seed: int = 0, kappa_max: float = 20.0) -> Scene:
         wall = rng.uniform(0.10, 0.15) * MM
         idj = 0.0 if j == n_tubes - 1 else od - 2 * wall
         straight = rng.uniform(0.4, 0.6) * L
-        tubes.append(Tube(E_NITINOL, G_NITINOL, idj, od, straight, L - straight,
-                          ((), (float(rng.uniform(5.0, kappa_max)),), ()), f"tube{j + 1}"))
+        tubes.append(Tube(E=E_NITINOL, G=G_NITINOL, inner_diameter=idj, outer_diameter=od,
+                          straight_length=straight, curved_length=L - straight,
+                          precurvature=((), (float(rng.uniform(5.0, kappa_max)),), ()),
+                          name=f"tube{j + 1}"))
         od = idj - rng.uniform(0.03, 0.05) * MM
         L += rng.uniform(20, 30) * MM
     # exposed length of tube j: about 40 % of its curved part beyond the previous tube's tip

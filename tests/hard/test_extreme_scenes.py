@@ -82,7 +82,9 @@ def test_high_precurvature_single_tube_circle(kappa):
     """One tube, 50 mm straight + 80 mm at kappa (3.2 rad of arc at 40 1/m: beyond a half
     turn), 30 mm of the straight part in the guide: a straight piece then a circle."""
     from torchpvs.scene import Tube
-    sc = Scene((Tube(E, G, 0.0, 1.0 * MM, 0.05, 0.08, ((), (kappa,), ())),),
+    sc = Scene((Tube(E=E, G=G, inner_diameter=0.0, outer_diameter=1.0 * MM,
+                     straight_length=0.05, curved_length=0.08,
+                     precurvature=((), (kappa,), ())),),
                Actuation((0.03,), (0.0,)))
     eq = tp.solve(sc)
     assert bool(eq.converged[0])
