@@ -65,7 +65,7 @@ from torchpvs.jacobians import actuator_stiffness
 from .plant import Plants, PlantVariation
 from .robots import Robot
 
-__all__ = ["CarriageModel", "RobotBatch"]
+__all__ = ["CarriageModel", "RobotBatch", "StepFlags"]
 
 
 @dataclass(frozen=True)
@@ -179,6 +179,21 @@ def project_in_metric(xu: np.ndarray, A: np.ndarray, G: np.ndarray, c: np.ndarra
         if not added:
             break
     return np.array(xu, dtype=np.float64, copy=True), np.zeros(len(c)), False
+
+
+class StepFlags(NamedTuple):
+    """What one control period of :meth:`RobotBatch.step_force` / :meth:`RobotBatch.step_joint`
+    reports per robot: ``solver_failure``, ``snapped`` bool ``(B,)``; ``tip_jump`` ``(B,)`` [m]
+    the largest tip motion in one substep; ``substeps`` ``(B,)`` int; the contact forces
+    averaged over the period [N] (signs in :meth:`RobotBatch.contact_forces`): ``stop_force
+    (B, N)`` from the stroke ends, ``contact_force (B, N-1)`` between neighbouring carriages."""
+
+    solver_failure: np.ndarray
+    snapped: np.ndarray
+    tip_jump: np.ndarray
+    substeps: np.ndarray
+    stop_force: np.ndarray
+    contact_force: np.ndarray
 
 
 class _Solved(NamedTuple):
@@ -329,13 +344,11 @@ class RobotBatch:
         n_motion = np.ceil(motion.max(-1))
         return np.clip(np.maximum(n_stiff, n_motion), 1, self.model.max_substeps).astype(int)
 
-    def step_force(self, tau: np.ndarray) -> dict[str, np.ndarray]:
+    def step_force(self, tau: np.ndarray) -> StepFlags:
         """Advance every robot one control period under commanded ``tau (B, 2N)`` [N, N·m].
 
-        Returns per-robot flags ``solver_failure``, ``snapped`` (bool ``(B,)``), ``tip_jump``
-        [m] (largest per substep), ``substeps``, and the contact forces averaged over the
-        control period [N] (signs in :meth:`contact_forces`): ``stop_force (B, N)`` from the
-        stroke ends, ``contact_force (B, N-1)`` between neighbouring carriages."""
+        Returns the per-robot :class:`StepFlags` (failures, snaps, tip jump, substeps and the
+        contact forces averaged over the control period)."""
         tau = np.asarray(tau, dtype=np.float64)
         n = self.n_substeps(tau)
         h = self.model.control_period / n
@@ -367,7 +380,7 @@ class RobotBatch:
 
         return accept
 
-    def step_joint(self, dx: np.ndarray) -> dict[str, np.ndarray]:
+    def step_joint(self, dx: np.ndarray) -> StepFlags:
         """Position-controlled carriages: move by ``dx (B, 2N)`` [m, rad] (projected onto the
         stroke limits) in one control period. Same flags as :meth:`step_force`."""
         dx = np.asarray(dx, dtype=np.float64)
@@ -415,8 +428,8 @@ class RobotBatch:
             for eq, idx, rows in K_eq:
                 self.K[idx] = self._stiffness_of(eq, rows)
         stop, pair = self.contact_forces(self._impulse / self.model.control_period)
-        return {"solver_failure": failure, "snapped": snapped, "tip_jump": jump,
-                "substeps": n, "stop_force": stop, "contact_force": pair}
+        return StepFlags(solver_failure=failure, snapped=snapped, tip_jump=jump, substeps=n,
+                         stop_force=stop, contact_force=pair)
 
     # -- contact --------------------------------------------------------------------------------
     TOL = 1e-12  # [m] feasibility tolerance of the contact solve (positions are ~0.1 m)

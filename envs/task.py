@@ -650,8 +650,8 @@ class ReachBatch:
             tau = self.robots.g.copy()  # position control holds the elastic load
             flags = self.robots.step_joint(a * step)
         self.prev_action = a
-        snapped = flags["snapped"]
-        failure = flags["solver_failure"]
+        snapped = flags.snapped
+        failure = flags.solver_failure
         d = np.linalg.norm(self.robots.tip - self.goal, axis=-1)
         snap_term = snapped & (self.config.snap_mode == "terminate")
         self.snap_flag = snap_term.astype(np.float64)
@@ -663,16 +663,16 @@ class ReachBatch:
             "snapped": snapped,
             "snap_terminated": snap_term,
             "solver_failure": failure,
-            "tip_jump": flags["tip_jump"],
-            "substeps": flags["substeps"],
+            "tip_jump": flags.tip_jump,
+            "substeps": flags.substeps,
             "tau": tau,
             "effort": (tau ** 2).sum(-1) * self.carriage.control_period,
             "saturated": (np.abs(a) >= 0.999).mean(-1),
             "tip_speed": np.linalg.norm(self.robots.tip - tip0, axis=-1)
             / self.carriage.control_period,
             "at_limit": self.robots.at_lower.any(-1) | self.robots.at_upper.any(-1),
-            "contact_force": flags["contact_force"],
-            "stop_force": flags["stop_force"],
+            "contact_force": flags.contact_force,
+            "stop_force": flags.stop_force,
             "reward_distance": terms.distance,
             "reward_snap": terms.snap,
         }

@@ -150,6 +150,52 @@ def _names(N: int) -> list[str]:
     return [f"D_{j + 1}" for j in range(N)] + [f"alpha_{j + 1}" for j in range(N)]
 
 
+def _trial(x, K, r, S, free, mu, s_ref, active, max_step):
+    """One damped Newton trial on the free coordinates: ``(x_try (B, 2N), block (B,), s_ref)``.
+
+    The step solves ``K_ff dx = -r`` in scaled units (``S``: insertions over the robot's
+    length, rotations in rad) by a truncated, Levenberg–Marquardt-damped SVD, is capped to
+    ``max_step`` (insertion [m], rotation [rad]) and shortened so that ``0 <= D_1 <= D_2 <=
+    ...`` holds along it. ``block``: active elements whose step the stroke limits cut to
+    nothing (a command that drives a carriage into a limit). ``s_ref (B,)``: the damping's
+    reference, the largest singular value of the first trial's scaled stiffness (pass None on
+    the first trial, then the value returned)."""
+    N = x.shape[-1] // 2
+    dtype = x.dtype
+    Ks = S[:, None] * K * S[None, :] * (free[:, :, None] & free[:, None, :])
+    rs = r * S
+    U, sv, Vh = torch.linalg.svd(Ks)
+    if s_ref is None:
+        s_ref = sv[:, 0].clamp(min=torch.finfo(dtype).tiny)
+    keep = sv > 1e-9 * sv[:, :1]
+    coef = torch.where(keep, sv / (sv**2 + mu[:, None] * s_ref[:, None]**2),
+                       torch.zeros_like(sv))
+    step = -(Vh.transpose(-1, -2) @ (coef * (U.transpose(-1, -2) @ rs[..., None])[..., 0])
+             [..., None])[..., 0]
+    dx = step * S * free
+    # trust region: cap the largest insertion / rotation change
+    capD = (dx[:, :N].abs().amax(-1) / max_step[0]).clamp(min=1.0)
+    capA = (dx[:, N:].abs().amax(-1) / max_step[1]).clamp(min=1.0)
+    dx = dx / torch.maximum(capD, capA)[:, None]
+    # stroke: keep 0 <= D_1 <= D_2 <= ... along the step
+    D, dD = x[:, :N], dx[:, :N]
+    g = D - torch.cat([torch.zeros_like(D[:, :1]), D[:, :-1]], -1)
+    dg = dD - torch.cat([torch.zeros_like(dD[:, :1]), dD[:, :-1]], -1)
+    lim = torch.where(dg < 0, g / (-dg).clamp(min=torch.finfo(dtype).tiny),
+                      torch.full_like(g, math.inf))
+    t = lim.amin(-1).clamp(max=1.0)
+    block = active & (t * dx.abs().amax(-1) <= 1e-15)
+    x_try = torch.where(active[:, None], x + t[:, None] * dx, x)
+    for j in range(N):   # round-off: re-impose the ordering on free insertions
+        lo = x_try[:, j - 1] if j > 0 else torch.zeros_like(x_try[:, 0])
+        x_try[:, j] = torch.where(free[:, j], torch.maximum(x_try[:, j], lo), x_try[:, j])
+        if j + 1 < N:
+            hi = x_try[:, j + 1]
+            x_try[:, j] = torch.where(free[:, j] & ~free[:, j + 1],
+                                      torch.minimum(x_try[:, j], hi), x_try[:, j])
+    return torch.where(block[:, None], x, x_try), block, s_ref
+
+
 def solve_force_controlled(
     scene: Scene | str, *, forces=None, torques=None, insertion=None, rotation=None,
     tip_force=None, tip_moment=None, options: SolverOptions | None = None,
@@ -304,38 +350,7 @@ def solve_force_controlled(
         if deadline is not None and time.perf_counter() > deadline:
             timed_out = True
             break
-        Ks = S[:, None] * K * S[None, :] * (free[:, :, None] & free[:, None, :])
-        rs = r * S
-        U, sv, Vh = torch.linalg.svd(Ks)
-        if s_ref is None:
-            s_ref = sv[:, 0].clamp(min=torch.finfo(dtype).tiny)
-        keep = sv > 1e-9 * sv[:, :1]
-        coef = torch.where(keep, sv / (sv**2 + mu[:, None] * s_ref[:, None]**2),
-                           torch.zeros_like(sv))
-        step = -(Vh.transpose(-1, -2) @ (coef * (U.transpose(-1, -2) @ rs[..., None])[..., 0])
-                 [..., None])[..., 0]
-        dx = step * S * free
-        # trust region: cap the largest insertion / rotation change
-        capD = (dx[:, :N].abs().amax(-1) / max_step[0]).clamp(min=1.0)
-        capA = (dx[:, N:].abs().amax(-1) / max_step[1]).clamp(min=1.0)
-        dx = dx / torch.maximum(capD, capA)[:, None]
-        # stroke: keep 0 <= D_1 <= D_2 <= ... along the step
-        D, dD = x[:, :N], dx[:, :N]
-        g = D - torch.cat([torch.zeros_like(D[:, :1]), D[:, :-1]], -1)
-        dg = dD - torch.cat([torch.zeros_like(dD[:, :1]), dD[:, :-1]], -1)
-        lim = torch.where(dg < 0, g / (-dg).clamp(min=torch.finfo(dtype).tiny),
-                          torch.full_like(g, math.inf))
-        t = lim.amin(-1).clamp(max=1.0)
-        block = active & (t * dx.abs().amax(-1) <= 1e-15)
-        x_try = torch.where(active[:, None], x + t[:, None] * dx, x)
-        for j in range(N):   # round-off: re-impose the ordering on free insertions
-            lo = x_try[:, j - 1] if j > 0 else torch.zeros_like(x_try[:, 0])
-            x_try[:, j] = torch.where(free[:, j], torch.maximum(x_try[:, j], lo), x_try[:, j])
-            if j + 1 < N:
-                hi = x_try[:, j + 1]
-                x_try[:, j] = torch.where(free[:, j] & ~free[:, j + 1],
-                                          torch.minimum(x_try[:, j], hi), x_try[:, j])
-        x_try = torch.where(block[:, None], x, x_try)
+        x_try, block, s_ref = _trial(x, K, r, S, free, mu, s_ref, active, max_step)
         eq_try, tau_try = evaluate(x_try, q)
         r_try = residual(tau_try)
         phi = ((r * S) ** 2).sum(-1)
@@ -425,17 +440,7 @@ def solve_force_controlled(
                 options=within_deadline(inner, None if deadline is None else
                                         max(deadline, time.perf_counter())
                                         + 0.1 * time_limit), initial=q)
-    Ks = S[:, None] * K * S[None, :]
-    Kf = torch.where(free[:, :, None] & free[:, None, :], 0.5 * (Ks + Ks.transpose(1, 2)),
-                     torch.zeros_like(Ks))
-    big = Kf.abs().amax((-1, -2)) * 10 + 1.0
-    Kf = Kf + torch.diag_embed((~free) * big[:, None])
-    # exclude the common-rotation zero mode: add a large multiple of its projector
-    n = torch.tensor([0.0] * N + [N ** -0.5] * N, dtype=dtype, device=device)
-    Kf = Kf + common_free[:, None, None] * big[:, None, None] * torch.outer(n, n)
-    margin = torch.linalg.eigvalsh(Kf)[:, 0]
-    margin = torch.where(free.any(-1), margin, torch.full_like(margin, math.inf))
-    tiny = 1e-10 * Ks.abs().amax((-1, -2))
+    margin, tiny = _stiffness_margin(K, S, free, common_free)
     stable = eqs.stable & (margin > tiny)
     zero_modes = common_free.long()
     result = ForceControlled(
@@ -451,6 +456,24 @@ def solve_force_controlled(
             raise SolverError(msg)
         warnings.warn(msg, RuntimeWarning, stacklevel=2)
     return result
+
+
+def _stiffness_margin(K, S, free, common_free):
+    """``(margin (B,), tiny (B,))``: the least eigenvalue of the scaled, symmetrized stiffness
+    on the free coordinates (inf where none is free), the common-rotation zero mode excluded
+    where it exists (``common_free``), and the threshold it must exceed to count as stable."""
+    N = K.shape[-1] // 2
+    Ks = S[:, None] * K * S[None, :]
+    Kf = torch.where(free[:, :, None] & free[:, None, :], 0.5 * (Ks + Ks.transpose(1, 2)),
+                     torch.zeros_like(Ks))
+    big = Kf.abs().amax((-1, -2)) * 10 + 1.0
+    Kf = Kf + torch.diag_embed((~free) * big[:, None])
+    # exclude the common-rotation zero mode: add a large multiple of its projector
+    n = torch.tensor([0.0] * N + [N ** -0.5] * N, dtype=K.dtype, device=K.device)
+    Kf = Kf + common_free[:, None, None] * big[:, None, None] * torch.outer(n, n)
+    margin = torch.linalg.eigvalsh(Kf)[:, 0]
+    margin = torch.where(free.any(-1), margin, torch.full_like(margin, math.inf))
+    return margin, 1e-10 * Ks.abs().amax((-1, -2))
 
 
 def commanded_force_jacobian(result: ForceControlled) -> torch.Tensor:

@@ -45,7 +45,7 @@ def test_pair_in_contact_moves_under_the_net_force(kind, f_outer, f_inner, stop)
     f = np.array([f_outer, f_inner, 0.0, 0.0])
     x0 = rb.x[0].copy()
     flags = rb.step_force(rb.g + f)
-    assert flags["substeps"][0] == 1           # one substep: the hand computation applies
+    assert flags.substeps[0] == 1           # one substep: the hand computation applies
     T = np.array([[1.0, 0, 0], [1.0, 0, 0], [0, 1.0, 0], [0, 0, 1.0]])
     dx, fc = _reduced_step(rb, f, T, rb.model.control_period)
     np.testing.assert_allclose(rb.x[0] - x0, dx, rtol=1e-9, atol=1e-15)
@@ -55,9 +55,9 @@ def test_pair_in_contact_moves_under_the_net_force(kind, f_outer, f_inner, stop)
         assert dx[0] / 0.1 == pytest.approx((f_outer + f_inner) / (b[0] + b[1]), rel=1e-6)
     # Newton's third law: the contact force acts equal and opposite on the two carriages
     assert fc[0] == pytest.approx(-fc[1], rel=1e-9)
-    np.testing.assert_allclose(flags["contact_force"][0], [fc[1]], rtol=1e-9)
+    np.testing.assert_allclose(flags.contact_force[0], [fc[1]], rtol=1e-9)
     assert (fc[1] > 0) == (stop == "nesting")   # sign: along +D of the inner carriage
-    np.testing.assert_array_equal(flags["stop_force"], 0.0)
+    np.testing.assert_array_equal(flags.stop_force, 0.0)
 
 
 def test_pair_separates_when_the_contact_would_pull():
@@ -71,7 +71,7 @@ def test_pair_separates_when_the_contact_would_pull():
     dx, fc = _reduced_step(rb, f, np.eye(4), 0.1)
     np.testing.assert_allclose(rb.x[0] - x0, dx, rtol=1e-9, atol=1e-15)
     assert rb.x[0, 1] > rb.x[0, 0]
-    np.testing.assert_array_equal(flags["contact_force"], 0.0)
+    np.testing.assert_array_equal(flags.contact_force, 0.0)
 
 
 def test_three_carriages_in_a_chain_share_the_net_force():
@@ -82,13 +82,13 @@ def test_three_carriages_in_a_chain_share_the_net_force():
     rb = _at(robot, "overdamped", [0.1, 0.1, 0.1, 0.3, -0.2, 0.5])
     f = np.array([1.0, -0.5, -0.8, 0.0, 0.0, 0.0])
     flags = rb.step_force(rb.g + f)
-    assert flags["substeps"][0] == 1
+    assert flags.substeps[0] == 1
     b = rb.damping[:3]
     v = f[:3].sum() / b.sum()
     np.testing.assert_allclose(rb.x[0, :3] - 0.1, 0.1 * v, rtol=1e-6)
     c12 = f[0] - b[0] * v            # outer: b1 v = f1 - c12 (it pushes the middle with c12)
     c23 = b[2] * v - f[2]            # inner: b3 v = f3 + c23
-    np.testing.assert_allclose(flags["contact_force"][0], [c12, c23], rtol=1e-6)
+    np.testing.assert_allclose(flags.contact_force[0], [c12, c23], rtol=1e-6)
     assert c12 > 0 and c23 > 0
 
 
@@ -105,7 +105,7 @@ def test_the_issue_scenario_now_advances():
         b = rb.damping
         expected = 1.0 * (1.96 - 4.51) / (b[0] + b[1])     # -6.05 mm
         assert rb.x[0, 0] - 0.08 == pytest.approx(expected, rel=0.02)
-        assert flags["contact_force"][0, 0] == pytest.approx(4.51 + b[1] * expected, rel=0.02)
+        assert flags.contact_force[0, 0] == pytest.approx(4.51 + b[1] * expected, rel=0.02)
 
 
 def test_stroke_end_reports_the_force_it_holds():
@@ -116,8 +116,8 @@ def test_stroke_end_reports_the_force_it_holds():
     for _ in range(3):
         flags = rb.step_force(rb.g + np.array([-1.0, 0.0, 0.0, 0.0]))
     assert rb.x[0, 0] == 0.0 and rb.at_lower[0, 0]
-    assert flags["stop_force"][0, 0] == pytest.approx(1.0, rel=1e-3)
-    np.testing.assert_array_equal(flags["stop_force"][0, 1], 0.0)
+    assert flags.stop_force[0, 0] == pytest.approx(1.0, rel=1e-3)
+    np.testing.assert_array_equal(flags.stop_force[0, 1], 0.0)
 
 
 @pytest.mark.parametrize("make", [fig3_two_tube, rvim_three_tube])

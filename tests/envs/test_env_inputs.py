@@ -279,7 +279,7 @@ def _merit_rollout(seed: int, control_period: float, tau_frac, B: int = 4,
     out = [phi()]
     substeps = 0
     for _ in range(int(round(seconds / control_period))):
-        substeps += int(rb.step_force(tau)["substeps"].max())
+        substeps += int(rb.step_force(tau).substeps.max())
         out.append(phi())
     return np.array(out), rb.solves - solves0, substeps
 
