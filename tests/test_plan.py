@@ -57,3 +57,43 @@ def test_warm_solves_with_cached_pose_constants_match_a_fresh_plan():
                           None, Plan(plan.tubes))
     assert torch.allclose(eq.tip_position, fresh.tip_position, rtol=0, atol=1e-9)
     assert torch.allclose(eq.error_estimate, fresh.error_estimate, rtol=1e-3, atol=1e-12)
+
+
+def test_tube_rows_equal_in_value_reuse_the_layout_and_others_do_not(monkeypatch):
+    """The one-sided kink forces re-solve rows of the plan's tubes (``tube_rows``: a new
+    object each call) at the same insertions on every warm solve: the layout is reused while
+    the tube values are equal, rebuilt when they differ. At the Fig. 3 actuation the outer
+    tube's straight-to-curved transition sits at the orifice (a kink), so a warm solve at a
+    new rotation rebuilds no layout, and its forces equal a fresh plan's."""
+    import torchpvs.plan as plan_mod
+    from torchpvs.sections import tube_rows
+
+    scene = tp.load_scene("renda2021_fig3")
+    built = []
+    real = plan_mod.build_layout
+    monkeypatch.setattr(plan_mod, "build_layout", lambda *a, **k: built.append(1) or real(*a, **k))
+    plan = plan_for(scene, torch.float64, torch.device("cpu"))
+    disc = tp.SolverOptions().discretization(2)
+    D = torch.tensor([scene.actuation.insertion] * 2, dtype=torch.float64)
+    A = torch.zeros(2, 2, dtype=torch.float64)
+    Z = torch.zeros(2, 3, dtype=torch.float64)
+    off = torch.zeros(2, dtype=torch.bool)
+    nq = n_coordinates(2, disc.n_basis)
+    rows = torch.tensor([0, 0])
+    with torch.no_grad():
+        plan.layout(tube_rows(plan.tubes, rows), D, A, Z, Z, off, disc, nq)
+        plan.layout(tube_rows(plan.tubes, rows), D, A + 1, Z, Z, off, disc, nq)
+        assert len(built) == 1                                   # equal values: reused
+        other = plan.tubes.map(lambda t: t * 1.01).map(lambda t: t.expand(2, *t.shape[1:]))
+        plan.layout(other, D, A, Z, Z, off, disc, nq)
+        assert len(built) == 2                                   # other values: rebuilt
+
+    eq0 = tp.solve(scene)
+    assert bool(eq0.force_kink.any())
+    built.clear()
+    eq1 = tp.solve(scene, rotation=[0.0, 1.5], initial=eq0)
+    assert not built                                             # main and sides reused
+    monkeypatch.setattr(plan_mod, "_PLANS", type(plan_mod._PLANS)())  # a fresh plan
+    ref = tp.solve(scene, rotation=[0.0, 1.5], initial=eq0)
+    assert torch.equal(eq1.actuation_forces, ref.actuation_forces)
+    assert torch.equal(eq1.actuation_forces_insertion, ref.actuation_forces_insertion)

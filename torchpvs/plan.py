@@ -80,8 +80,8 @@ class Plan:
             t.requires_grad for t in (D, A, F, M, *tubes.tensors()))
         key = (disc, D.shape)
         memo = self._memo.get(key)
-        if (not grad and memo is not None and memo.tubes is tubes
-                and memo.D.shape == D.shape and torch.equal(memo.D, D)
+        if (not grad and memo is not None and memo.D.shape == D.shape
+                and _same_tubes(memo.tubes, tubes) and torch.equal(memo.D, D)
                 and torch.equal(memo.loaded, loaded)):
             # psi0 = alpha + (twist of the curved material held in the guide).
             lay = memo.lay._replace(psi0=memo.psi0_guide + A, alpha=A, force=F, moment=M)
@@ -106,6 +106,15 @@ class Plan:
         if name not in memo.extra:
             memo.extra[name] = compute()
         return memo.extra[name]
+
+
+def _same_tubes(a: TubeTensors, b: TubeTensors) -> bool:
+    # By value, not only identity: the one-sided kink forces re-solve batch rows of the
+    # plan's tubes (sections.tube_rows, a new object per call) at the same insertions on
+    # every warm solve, and their layout is the same while the values are.
+    return a is b or all(x.shape == y.shape and x.dtype == y.dtype and x.device == y.device
+                         and torch.equal(x, y)
+                         for x, y in zip(a.tensors(), b.tensors(), strict=True))
 
 
 _PLANS: OrderedDict = OrderedDict()
