@@ -127,15 +127,6 @@ def test_torque_beyond_elastic_range_fails_with_reason():
                                   max_iter=20)
 
 
-def test_bad_input_names_the_field():
-    with pytest.raises(ValueError, match="torques must have shape"):
-        tp.solve_force_controlled(SCENE, torques=[0.1, 0.2, 0.3])
-    with pytest.raises(ValueError, match="forces must be finite or NaN"):
-        tp.solve_force_controlled(SCENE, forces=[math.inf, NAN])
-    with pytest.raises(ValueError, match="insertion"):
-        tp.solve_force_controlled(SCENE, forces=[NAN, 1.0], insertion=[0.1, 0.05])
-
-
 F32 = tp.SolverOptions(dtype=torch.float32)
 
 

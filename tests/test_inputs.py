@@ -47,6 +47,28 @@ def test_options_of_the_wrong_type_are_named():
         tp.solve(SC, options={"accuracy": 1e-6})
 
 
+def test_solve_names_the_bad_field():
+    with pytest.raises(ValueError, match="insertion"):
+        tp.solve(SC, insertion=[0.1])
+    with pytest.raises(ValueError, match="insertion"):
+        tp.solve(SC, insertion=[0.2, 0.1])
+    with pytest.raises(ValueError, match="rotation"):
+        tp.solve(SC, rotation=[float("nan"), 0.0])
+    with pytest.raises(ValueError, match="options.method"):
+        tp.SolverOptions(method="bfgs")
+    with pytest.raises(ValueError, match="options.accuracy"):
+        tp.SolverOptions(accuracy=-1.0)
+
+
+def test_solve_force_controlled_names_the_bad_field():
+    with pytest.raises(ValueError, match="torques must have shape"):
+        tp.solve_force_controlled(SC, torques=[0.1, 0.2, 0.3])
+    with pytest.raises(ValueError, match="forces must be finite or NaN"):
+        tp.solve_force_controlled(SC, forces=[math.inf, math.nan])
+    with pytest.raises(ValueError, match="insertion"):
+        tp.solve_force_controlled(SC, forces=[math.nan, 1.0], insertion=[0.1, 0.05])
+
+
 @pytest.mark.parametrize("dtype", [torch.float16, torch.bfloat16])
 def test_half_precision_inputs_are_refused_by_name(dtype):
     with pytest.raises(ValueError, match=r"rotation: dtype .*float16.* not supported"):

@@ -239,20 +239,6 @@ def test_continuity_across_section_cut():
     assert float((a.tip_position - b.tip_position).norm()) < 1e-5
 
 
-def test_bad_inputs_name_the_field():
-    sc = tp.load_scene("renda2021_fig3")
-    with pytest.raises(ValueError, match="insertion"):
-        tp.solve(sc, insertion=[0.1])
-    with pytest.raises(ValueError, match="insertion"):
-        tp.solve(sc, insertion=[0.2, 0.1])
-    with pytest.raises(ValueError, match="rotation"):
-        tp.solve(sc, rotation=[float("nan"), 0.0])
-    with pytest.raises(ValueError, match="options.method"):
-        tp.SolverOptions(method="bfgs")
-    with pytest.raises(ValueError, match="options.accuracy"):
-        tp.SolverOptions(accuracy=-1.0)
-
-
 def test_nonconvergence_is_reported_not_nan():
     sc = tp.load_scene("renda2021_fig3")
     eq = tp.solve(sc, rotation=[0.0, 2.0],
