@@ -399,7 +399,7 @@ def equilibrium_forces(tubes, res: ForceState, resolve, delta: float = 1e-7, tol
     through ONE envelope-theorem evaluation (in closed form without tip load, else one reverse
     pass).
 
-    ``cache(name, compute)``: where given, the kink analysis (:func:`_kink_plan`) is kept with
+    ``cache(key, compute)``: where given, the kink analysis (:func:`_kink_plan`) is kept with
     the solve's layout (``torchpvs.plan.Plan.cached``) and reused while the insertions are.
 
     Returns ``(forces = retraction side, torques, insertion side, kink mask)``, all ``(B, N)``;
@@ -411,7 +411,7 @@ def equilibrium_forces(tubes, res: ForceState, resolve, delta: float = 1e-7, tol
     def analyse():
         return _kink_plan(tubes, D, delta, tol)
 
-    kp = analyse() if cache is None else cache(f"kinks_{delta}_{tol}", analyse)
+    kp = analyse() if cache is None else cache(("kinks", delta, tol), analyse)
     kink, blocked = kp.kink.clone(), kp.blocked      # the cached mask is not handed out
 
     def with_constants(state: ForceState, name: str) -> ForceState:
@@ -421,7 +421,7 @@ def equilibrium_forces(tubes, res: ForceState, resolve, delta: float = 1e-7, tol
             return state
         xq = state.tab.xq
         return state._replace(node_constants=cache(
-            f"{name}_{delta}_{tol}", lambda: node_constants(state.lay, xq)))
+            (name, delta, tol), lambda: node_constants(state.lay, xq)))
 
     if kp.sel is None:
         forces, torques = envelope_forces(tubes, with_constants(res, "force_nodes"))

@@ -203,7 +203,7 @@ def tips_with_steps(q, disc, lay, plan: Plan, m: int, kernel: Kernel = EAGER):
     """Tip positions of ``q`` on the layout ``lay`` of ``disc`` with ``m`` Magnus steps per
     section; the pose constants of those nodes are kept with the layout (:meth:`Plan.cached`)."""
     tab = replace(disc, n_magnus=m).tables(q.dtype, q.device)
-    const = plan.cached(disc, lay, f"pose_constants_{m}",
+    const = plan.cached(disc, lay, ("pose_constants", m),
                         lambda: pose_node_constants(lay, tab.xm))
     return kernel.pose(q, lay, tab, const)[0]
 

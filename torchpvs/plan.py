@@ -16,6 +16,7 @@ users get the reuse too; :class:`torchpvs.CTR` owns one.
 from __future__ import annotations
 
 from collections import OrderedDict
+from collections.abc import Hashable
 from dataclasses import dataclass, field
 
 import torch
@@ -95,17 +96,18 @@ class Plan:
                 self._memo.pop(next(iter(self._memo)))
         return lay, maps
 
-    def cached(self, disc: Discretization, lay, name: str, compute):
+    def cached(self, disc: Discretization, lay, key: Hashable, compute):
         """``compute()`` for a layout ``lay`` that :meth:`layout` returned for ``disc``, kept
-        with it while it is reused (e.g. the pose constants at the finer Magnus nodes of the
+        under ``key`` (what is computed and its parameters, e.g. ``("kinks", delta, tol)``)
+        with the layout while it is reused (e.g. the pose constants at the finer Magnus nodes of the
         step-count check); computed afresh, and not kept, for any other layout."""
         memo = self._memo.get((disc, lay.D.shape))
         # A reused layout shares its masks with the memo (only angles and loads are replaced).
         if memo is None or memo.lay.qmask is not lay.qmask:
             return compute()
-        if name not in memo.extra:
-            memo.extra[name] = compute()
-        return memo.extra[name]
+        if key not in memo.extra:
+            memo.extra[key] = compute()
+        return memo.extra[key]
 
 
 def _same_tubes(a: TubeTensors, b: TubeTensors) -> bool:
