@@ -184,7 +184,6 @@ EAGER = Kernel(guess=default_guess, solve=newton, step=newton_step,
                section_step=new_section_step, pose=tip_pose, spd_solve=spd_solve)
 
 
-
 def _compiled_solve(q, prob, L_char, **kwargs):
     out = compiled.solve(q, prob, L_char, **kwargs)
     return newton(q, prob, L_char, **kwargs) if out is None else out

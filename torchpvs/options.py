@@ -3,9 +3,11 @@
 from __future__ import annotations
 
 import math
+import numbers
 import time
 from dataclasses import dataclass, replace
 
+import numpy as np
 import torch
 
 from .kernel import KERNELS
@@ -26,6 +28,15 @@ class SolverError(RuntimeError):
 
 class AccuracyWarning(RuntimeWarning):
     """An automatic solve converged but its error estimate exceeds ``options.accuracy``."""
+
+
+def _is_int(v) -> bool:
+    # bool is an int subclass: True must not pass as 1 (numpy integers are Integral)
+    return isinstance(v, numbers.Integral) and not isinstance(v, (bool, np.bool_))
+
+
+def _is_number(v) -> bool:
+    return isinstance(v, numbers.Real) and not isinstance(v, (bool, np.bool_))
 
 
 @dataclass(frozen=True)
@@ -125,13 +136,13 @@ class SolverOptions:
     time_limit: float | None = 30.0
 
     def __post_init__(self) -> None:
-        if not (isinstance(self.accuracy, (int, float)) and self.accuracy > 0
+        if not (_is_number(self.accuracy) and self.accuracy > 0
                 and math.isfinite(self.accuracy)):
             raise ValueError(
                 f"options.accuracy must be a positive length [m], got {self.accuracy!r}")
-        if self.order is not None and (not isinstance(self.order, int) or self.order < 0):
+        if self.order is not None and (not _is_int(self.order) or self.order < 0):
             raise ValueError(f"options.order must be an integer >= 0 or None, got {self.order!r}")
-        if not isinstance(self.max_order, int) or self.max_order < 1:
+        if not _is_int(self.max_order) or self.max_order < 1:
             raise ValueError(f"options.max_order must be an integer >= 1, got {self.max_order!r}")
         if self.method not in _METHODS:
             raise ValueError(f"options.method must be one of {_METHODS}, got {self.method!r}")
@@ -141,13 +152,13 @@ class SolverOptions:
         if self.on_failure not in _ON_FAILURE:
             raise ValueError(f"options.on_failure must be one of {_ON_FAILURE}, "
                              f"got {self.on_failure!r}")
-        if not (self.tol > 0):
-            raise ValueError(f"options.tol must be > 0, got {self.tol!r}")
-        if not isinstance(self.max_iter, int) or self.max_iter < 1:
+        if not (_is_number(self.tol) and self.tol > 0 and math.isfinite(self.tol)):
+            raise ValueError(f"options.tol must be a finite number > 0, got {self.tol!r}")
+        if not _is_int(self.max_iter) or self.max_iter < 1:
             raise ValueError(f"options.max_iter must be an integer >= 1, got {self.max_iter!r}")
-        if not isinstance(self.load_steps, int) or self.load_steps < 1:
+        if not _is_int(self.load_steps) or self.load_steps < 1:
             raise ValueError(f"options.load_steps must be an integer >= 1, got {self.load_steps!r}")
-        if not isinstance(self.max_total_iter, int) or self.max_total_iter < 1:
+        if not _is_int(self.max_total_iter) or self.max_total_iter < 1:
             raise ValueError(f"options.max_total_iter must be an integer >= 1, "
                              f"got {self.max_total_iter!r}")
         if self.time_limit is not None and not (
@@ -155,14 +166,19 @@ class SolverOptions:
                 and self.time_limit > 0 and math.isfinite(self.time_limit)):
             raise ValueError(f"options.time_limit must be a positive number of seconds or None, "
                              f"got {self.time_limit!r}")
-        if self.n_quad is not None and (not isinstance(self.n_quad, int) or self.n_quad < 2):
+        if self.n_quad is not None and (not _is_int(self.n_quad) or self.n_quad < 2):
             raise ValueError(f"options.n_quad must be an integer >= 2 or None, got {self.n_quad!r}")
-        if self.n_magnus is not None and (not isinstance(self.n_magnus, int)
+        if self.n_magnus is not None and (not _is_int(self.n_magnus)
                                           or self.n_magnus < 1):
             raise ValueError(
                 f"options.n_magnus must be an integer >= 1 or None, got {self.n_magnus!r}")
-        if not (self.backward_ridge >= 0 and math.isfinite(self.backward_ridge)):
+        if not (_is_number(self.backward_ridge) and self.backward_ridge >= 0
+                and math.isfinite(self.backward_ridge)):
             raise ValueError(f"options.backward_ridge must be >= 0, got {self.backward_ridge!r}")
+        if not (_is_number(self.singular_tol) and self.singular_tol >= 0
+                and math.isfinite(self.singular_tol)):
+            raise ValueError(f"options.singular_tol must be a finite number >= 0, "
+                             f"got {self.singular_tol!r}")
         if self.kernel not in KERNELS:
             raise ValueError(f"options.kernel must be one of {tuple(KERNELS)}, "
                              f"got {self.kernel!r}")

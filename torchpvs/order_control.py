@@ -212,7 +212,7 @@ def refine_magnus(scene, tubes, D, A, F, M, res: SolveState, opts: SolverOptions
     """Choose the Magnus step count: ``m`` steps are kept when the tip moves less than
     ``accuracy / 2`` from half as many, and that change is the estimate reported (an upper
     one: where the 4th order holds, the m-step error is ~1/15 of it; one half-cost pose,
-    usually already made by :func:`_order_estimate`); otherwise the steps are doubled until
+    usually already made by :func:`order_estimate`); otherwise the steps are doubled until
     the tip moves less than ``accuracy / 2`` when they double again (the remaining error of
     the finer count is ~1/15 of that change). The equilibrium coordinates do not depend on the
     pose integration unless a tip load is applied, so the checks are tip recomputations; only
