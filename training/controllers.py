@@ -306,7 +306,9 @@ class PlanThenServoController:
         self.rotation_margin = float(rotation_margin)
         n_tubes = self.robot.n_tubes
         self.table_size = int(table_size or 2048 * max(1, n_tubes - 1))
-        self.ik = dict(starts=starts, tol=ik_tol, max_iter=max_iter)
+        # restarts=0: the planner's own fallbacks (more table neighbours per round) replace
+        # failed starts; random restarts would change its plans and the published figures
+        self.ik = dict(starts=starts, tol=ik_tol, max_iter=max_iter, restarts=0)
         B, n = venv.num_envs, 2 * n_tubes
         self._goal = np.full((B, 3), np.nan)
         self.target = np.zeros((B, n))
