@@ -129,11 +129,11 @@ def test_a_tip_load_runs_the_eager_solve_and_agrees():
 
 
 def test_the_compiled_kernel_is_registered_and_runs_solve_and_step(monkeypatch):
-    """KERNELS["compiled"] replaces solve, step (the order estimate's Newton steps) and pose,
-    and keeps the eager functions for the rest; the compiled solve and step are reached by a
-    default automatic-order solve."""
+    """KERNELS["compiled"] replaces solve, step (the order estimate's Newton steps), the
+    new-section step, pose and the force partials, and keeps the eager functions for the rest;
+    the compiled solve and step are reached by a default automatic-order solve."""
     assert KERNELS["compiled"] is COMPILED
-    for f in ("guess", "section_step", "spd_solve"):
+    for f in ("guess", "spd_solve"):
         assert getattr(COMPILED, f) is getattr(EAGER, f)
     calls = {"solve": 0, "step": 0}
     real_solve, real_step = compiled.solve, compiled.step
@@ -175,3 +175,76 @@ def test_the_compiled_tip_pose_is_the_magnus_chain(monkeypatch, scene):
     rot = torch.tensor(np.random.default_rng(1).uniform(-3, 3, (16, len(scene.tubes))), dtype=DT)
     tp.solve(scene, rotation=rot, options=SolverOptions(kernel="pose-check"))
     assert worst and max(worst) < 1e-14, worst
+
+
+def _kink_scenes():
+    """(scene, insertion) pairs with a section cut exactly at a kink and next to it (the
+    one-sided forces' re-solves and the cut order of coinciding cuts)."""
+    sc = fig3(alpha2_deg=80.0)
+    L1, L2 = sc.tubes[0].length, sc.tubes[1].length
+    Ls1, Ls2 = sc.tubes[0].straight_length, sc.tubes[1].straight_length
+    D1 = D1_FIG3 - 1e-3
+    out = []
+    for D in ([Ls1, 0.2085], [D1, Ls2], [D1, L2 - (L1 - D1)], [D1, Ls2 - (L1 - D1)]):
+        for off in (0.0, 1e-6, -1e-6):
+            j = 0 if D[0] == Ls1 else 1
+            Dj = list(D)
+            Dj[j] += off
+            out.append((sc, Dj))
+    return out
+
+
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_the_compiled_force_partials_are_the_closed_form(monkeypatch, dtype):
+    """Every closed-form force evaluation a solve makes (the equilibrium's and its kink
+    sides'), and the same at coordinates off the equilibrium: the compiled partials against
+    torchpvs.forces.closed_form_partials on the same arguments (relative 1e-12 in float64,
+    1e-5 in float32), on the suite's scenes and at kinks."""
+    from torchpvs.forces import closed_form_partials
+    worst = []
+    noise = torch.Generator().manual_seed(0)
+
+    def check(q, lay, tubes, tab, disc, const=None):
+        ref = closed_form_partials(q, lay, tubes, tab, disc, const)
+        q_off = q + 0.3 * torch.randn(q.shape, generator=noise, dtype=q.dtype) * lay.qmask
+        for qq, r in ((q, ref), (q_off, closed_form_partials(q_off, lay, tubes, tab, disc))):
+            out = compiled.partials(qq, lay, tubes, tab)
+            assert out[0].dtype == dtype
+            worst.append(max(float((a - b).abs().max() / (a.abs().max() + 1e-3))
+                             for a, b in zip(r, out, strict=True)))
+        return ref
+
+    monkeypatch.setitem(KERNELS, "partials-check", EAGER._replace(partials=check))
+    opts = SolverOptions(kernel="partials-check", dtype=dtype)
+    for scene in (fig3(), random_scene(1), random_scene(2), nested_scene(3, seed=1),
+                  nested_scene(4, seed=2)):
+        rot = np.random.default_rng(1).uniform(-3, 3, (8, len(scene.tubes)))
+        tp.solve(scene, rotation=torch.tensor(rot, dtype=dtype), options=opts)
+    for scene, D in _kink_scenes():
+        tp.solve(scene, insertion=torch.tensor(D, dtype=dtype), options=opts)
+    assert len(worst) >= 30, len(worst)
+    assert max(worst) < (1e-12 if dtype == torch.float64 else 1e-5), max(worst)
+
+
+def test_the_compiled_new_section_step_is_the_eager_one(monkeypatch):
+    """The new-section step of the one-sided forces (a section of length 1e-7 m appearing at a
+    kink, solved for with the rest held): the compiled step against kernel.new_section_step,
+    the same rows applied and the same coordinates to 1e-12 (relative)."""
+    from torchpvs.kernel import VANISHING, new_section_step
+    seen = []
+
+    def check(q, prob, new, length):
+        ref = new_section_step(q, prob, new, length)
+        out = compiled.section_step(q, prob, new, VANISHING * length)
+        assert torch.equal(ref[1], out[1])
+        seen.append((int(ref[1].sum()),
+                     float((ref[0] - out[0]).abs().max() / (ref[0].abs().max() + 1e-30))))
+        return ref
+
+    monkeypatch.setitem(KERNELS, "section-check", EAGER._replace(section_step=check))
+    rot = torch.tensor(np.random.default_rng(2).uniform(-3, 3, (8, 2)), dtype=DT)
+    for scene, D in _kink_scenes():
+        tp.solve(scene, insertion=torch.tensor(D, dtype=DT).expand(8, 2), rotation=rot,
+                 options=SolverOptions(kernel="section-check"))
+    assert sum(applied for applied, _ in seen) >= 12, seen
+    assert max(d for _, d in seen) < 1e-12, seen

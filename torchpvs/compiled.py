@@ -45,7 +45,7 @@ except ImportError:      # pragma: no cover - numba is a dependency; this is the
     def njit(*args, **kwargs):      # the functions below stay plain Python (never called)
         return lambda f: f
 
-__all__ = ["available", "pose", "solve", "step"]
+__all__ = ["available", "partials", "pose", "section_step", "solve", "step"]
 
 # Batches from this size run in parallel (a parallel launch costs ~10 us: a serial loop over a
 # few elements is faster).
@@ -155,6 +155,52 @@ def step(q: torch.Tensor, prob: Problem) -> tuple[torch.Tensor, torch.Tensor] | 
     return torch.where(okt[:, None], q1, q), okt
 
 
+def section_step(q: torch.Tensor, prob: Problem, new: torch.Tensor,
+                 hmax: float) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """:func:`torchpvs.kernel.new_section_step` compiled (the same block, the same conditions;
+    ``hmax`` [m] the longest section that counts as vanishing); None where the compiled kernel
+    does not apply."""
+    if not _applicable(q, prob) or prob.with_load:
+        return None
+    dtype = q.dtype
+    nq = q.shape[-1]
+    cidx = _get(prob.maps, "cidx")
+    qc = _numpy(compact_q(q, cidx).to(dtype))
+    newc = _numpy(torch.gather(new, 1, cidx))
+    ok = np.zeros(qc.shape[0], dtype=np.bool_)
+    run = _section_parallel if _set_threads(qc.shape[0]) else _section_serial
+    run(qc, *_arrays(prob, dtype), newc, hmax, ok)
+    okt = torch.from_numpy(ok)
+    q1 = expand_q(torch.from_numpy(qc), cidx, nq)
+    return torch.where(okt[:, None], q1, q), okt
+
+
+def partials(q: torch.Tensor, lay, tubes, tab) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """:func:`torchpvs.forces.closed_form_partials` compiled (``q (B, nq)`` on the layout
+    ``lay``, the tube rows ``tubes``): ``(dU/dD, dU/dalpha)`` ``(B, N)``; None where the
+    compiled kernel does not apply (a tensor that requires grad, not CPU)."""
+    if (numba is None or q.device.type != "cpu" or q.dtype not in (torch.float32, torch.float64)
+            or torch.is_grad_enabled() and (q.requires_grad or lay.D.requires_grad
+                                            or lay.alpha.requires_grad)):
+        return None
+    dtype = q.dtype
+    B, N = lay.D.shape
+
+    def a(t, shape=None):
+        t = t.detach().to(dtype)
+        return np.ascontiguousarray((t if shape is None else t.expand(shape)).numpy())
+
+    tau_D = np.empty((B, N), dtype=_numpy(q).dtype)
+    tau_A = np.empty((B, N), dtype=tau_D.dtype)
+    run = _partials_parallel if _set_threads(B) else _partials_serial
+    run(a(q), a(lay.qmask), a(lay.D), a(tubes.length, (B, N)), a(tubes.straight, (B, N)),
+        a(lay.EI), a(lay.GJ), a(lay.coef), a(lay.tau), a(lay.psi0), a(lay.start), a(lay.h),
+        a(lay.present), a(lay.curved), a(lay.active), a(lay.presc), a(lay.W),
+        a(_get(tab, "xq")), a(_get(tab, "wq")), a(_get(tab, "phi_q")), a(_get(tab, "Q_q")),
+        tau_D, tau_A)
+    return torch.from_numpy(tau_D), torch.from_numpy(tau_A)
+
+
 def pose(q: torch.Tensor, lay, tab, const) -> tuple | None:
     """:func:`torchpvs.mechanics.tip_pose`'s contract with the pose constants ``const`` (``q
     (..., B, nq)``), compiled: ``(tip (..., B, 3), R (..., B, 3, 3), psi_tip (..., B, N))``;
@@ -199,7 +245,9 @@ _jit = njit(cache=True, nogil=True)
 def evaluate(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb,
              order, g, H):
     """The elastic energy (returned); with order >= 1 its gradient into g, with order 2
-    its Hessian into H (mechanics.elastic_grad_hess, term by term)."""
+    its Hessian into H (mechanics.elastic_grad_hess, term by term); with order 3 only the
+    Hessian's within-section blocks, without the terms through the angle bases and the guide
+    diagonal (mechanics.section_grad_block's blocks, in place in H)."""
     N = psi0.shape[0]
     S = h.shape[0]
     Q, n = phi.shape
@@ -223,7 +271,7 @@ def evaluate(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi,
     mu = np.zeros((N, 2, n), dtype=q.dtype)
     gq = np.zeros((N, n, n), dtype=q.dtype)
     nqt = np.zeros((N, 2, n, n), dtype=q.dtype)
-    big = nc if order >= 2 else 1
+    big = nc if order == 2 else 1
     V = np.zeros((S * N, big), dtype=q.dtype)
     G = np.zeros((big, big), dtype=q.dtype)
     X = np.empty((C, n), dtype=q.dtype)
@@ -305,7 +353,7 @@ def evaluate(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi,
             for c in range(C):
                 for p in range(n):
                     g[off + c * n + p] += gX[c, p] * qm[off + c * n + p]
-        if order >= 2:
+        if order == 2:
             # V rows (s, j): alpha b / 2, plus beta at (j's torsion) and mu at the bending
             # coefficients of section s; the within-section blocks go straight into H.
             for j in range(N):
@@ -316,6 +364,7 @@ def evaluate(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi,
                     V[r0, off + (2 + j) * n + p] += hh * beta[j, p]
                     V[r0, off + p] += mu[j, 0, p]
                     V[r0, off + n + p] += mu[j, 1, p]
+        if order >= 2:
             for c in range(C):
                 for p in range(n):
                     for c2 in range(C):
@@ -341,7 +390,7 @@ def evaluate(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi,
                     g[i] += w * bvec[s, j, i]
         for i in range(nc):
             g[i] += guide[i] * q[i]
-    if order >= 2:
+    if order == 2:
         # b^T V + V^T b (symmetric: the upper triangle, mirrored), and the guide diagonal
         for r in range(S * N):
             sr = r // N
@@ -665,6 +714,77 @@ def step_one(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi,
 
 
 @_jit
+def section_step_one(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb,
+                     new, hmax):
+    """One element's new-section step (kernel.new_section_step): the coordinates ``new`` of
+    one vanishing compact section solved for, the rest held, by one Newton step on their
+    block; q overwritten where it applies; returns whether it did."""
+    nc = q.shape[0]
+    N = psi0.shape[0]
+    S = h.shape[0]
+    n = phi.shape[1]
+    Cn = (2 + N) * n
+    for i in range(N):
+        if new[i]:
+            return False       # a guide twist appearing: not a section's coordinates
+    sec = -1
+    for s in range(S):
+        for i in range(Cn):
+            if new[N + s * Cn + i]:
+                if sec >= 0 and sec != s:
+                    return False
+                sec = s
+                break
+    if sec < 0 or not h[sec] <= hmax:
+        return False
+    dt = q.dtype
+    g = np.empty(nc, dtype=dt)
+    H = np.empty((nc, nc), dtype=dt)
+    evaluate(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb, 3, g, H)
+    off = N + sec * Cn
+    A = np.zeros((Cn, Cn), dtype=dt)
+    L = np.zeros((Cn, Cn), dtype=dt)
+    rhs = np.empty(Cn, dtype=dt)
+    x = np.empty(Cn, dtype=dt)
+    for i in range(Cn):
+        mi = 1.0 if new[off + i] else 0.0
+        rhs[i] = -g[off + i] * mi
+        for k in range(Cn):
+            mk = 1.0 if new[off + k] else 0.0
+            A[i, k] = H[off + i, off + k] * mi * mk
+        A[i, i] += 1.0 - mi
+    if not cholesky(A, L):
+        return False
+    cho_solve(L, rhs, x)
+    for i in range(Cn):
+        if new[off + i]:
+            x[i] = q[off + i] + x[i]
+        else:
+            x[i] = q[off + i]
+    if not all_finite(x):
+        return False
+    for i in range(Cn):
+        q[off + i] = x[i]
+    return True
+
+
+@njit(cache=True, nogil=True)
+def _section_serial(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb,
+                    new, hmax, ok):
+    for b in range(q.shape[0]):
+        ok[b] = section_step_one(q[b], qm[b], psi0[b], bvec[b], h[b], us[b], EIw[b], EIws[b],
+                                 GJw[b], Hsec[b], guide[b], gconst[b], phi, Qb, new[b], hmax)
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _section_parallel(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb,
+                      new, hmax, ok):
+    for b in prange(q.shape[0]):
+        ok[b] = section_step_one(q[b], qm[b], psi0[b], bvec[b], h[b], us[b], EIw[b], EIws[b],
+                                 GJw[b], Hsec[b], guide[b], gconst[b], phi, Qb, new[b], hmax)
+
+
+@_jit
 def newton_into(b, q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb, Lc,
                 consts, minimize, max_iter, H, g, U, res, it, conv, verdict):
     out = np.empty(5, dtype=q.dtype)
@@ -709,6 +829,210 @@ def _step_parallel(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst
     for b in prange(q.shape[0]):
         ok[b] = step_one(q[b], qm[b], psi0[b], bvec[b], h[b], us[b], EIw[b], EIws[b], GJw[b],
                          Hsec[b], guide[b], gconst[b], phi, Qb, consts[3])
+
+
+@_jit
+def horner(coef, j, c, t):
+    """``mechanics.poly`` of tube j's component c at t (coef (N, 3, P))."""
+    P = coef.shape[2]
+    out = coef[j, c, P - 1]
+    for p in range(P - 2, -1, -1):
+        out = out * t + coef[j, c, p]
+    return out
+
+
+@_jit
+def horner_derivative(coef, j, c, t):
+    """d/dt of :func:`horner`."""
+    P = coef.shape[2]
+    if P < 2:
+        return 0.0 * t
+    out = (P - 1) * coef[j, c, P - 1]
+    for p in range(P - 2, 0, -1):
+        out = out * t + p * coef[j, c, p]
+    return out
+
+
+@_jit
+def horner_integral(coef, j, t):
+    """``int_0^t`` of tube j's z-polynomial (mechanics._poly_int)."""
+    P = coef.shape[2]
+    out = coef[j, 2, P - 1] / P * t
+    for p in range(P - 2, -1, -1):
+        out = (out + coef[j, 2, p] / (p + 1)) * t
+    return out
+
+
+@_jit
+def partials_one(q, qmask, D, L, Ls, EI, GJ, coef, tau, psi0, start, h, present, curved,
+                 active, presc, W, xq, wq, phi, Qb, tau_D, tau_A):
+    """One element's ``(dU/dD, dU/dalpha)`` at fixed q into tau_D, tau_A (N,)
+    (forces.closed_form_partials term by term, on the layout's S sections, prescribed ones
+    included; the node fields of mechanics.node_fields)."""
+    N = D.shape[0]
+    S = h.shape[0]
+    Q, n = phi.shape
+    Cn = (2 + N) * n
+    dt = q.dtype
+    # d(cut)/dD of the cuts in build_layout's sorted order (a stable sort, as torch.sort's)
+    cut = np.empty(2 * N, dtype=dt)
+    dsrc = np.empty(2 * N, dtype=dt)
+    for j in range(N):
+        ell_raw = L[j] - D[j]
+        t_raw = Ls[j] - D[j]
+        dell = -1.0 if ell_raw >= 0 else 0.0
+        ell = max(ell_raw, 0.0)
+        tau0 = max(t_raw, 0.0)
+        dtau0 = -1.0 if t_raw >= 0 else 0.0
+        if tau0 < ell:
+            dtau = dtau0
+        elif tau0 > ell:
+            dtau = dell
+        else:
+            dtau = 0.5 * (dtau0 + dell)
+        cut[j] = ell
+        cut[N + j] = min(tau0, ell)
+        dsrc[j] = dell
+        dsrc[N + j] = dtau
+    perm = np.arange(2 * N)
+    for i in range(1, 2 * N):
+        k = perm[i]
+        m = i - 1
+        while m >= 0 and cut[perm[m]] > cut[k]:
+            perm[m + 1] = perm[m]
+            m -= 1
+        perm[m + 1] = k
+    dh = np.zeros((S, N), dtype=dt)
+    dstart = np.zeros((S, N), dtype=dt)
+    for k in range(S):
+        l = perm[k] % N
+        dh[k, l] += dsrc[perm[k]]
+        if k + 1 < S:
+            dstart[k + 1, l] = dsrc[perm[k]]
+            dh[k + 1, l] -= dsrc[perm[k]]
+    # guide: twist and bending energy held straight; g0 the own-tube angle shift per D
+    g0 = np.empty(N, dtype=dt)
+    psi_start = np.empty(N, dtype=dt)
+    for j in range(N):
+        w = q[j] * qmask[j]
+        Dm = min(D[j], L[j])
+        dmin = 1.0 if D[j] < L[j] else (0.0 if D[j] > L[j] else 0.5)
+        dtg = dmin if Dm - Ls[j] >= 0 else 0.0
+        tg = max(Dm - Ls[j], 0.0)
+        ugx = horner(coef, j, 0, tg)
+        ugy = horner(coef, j, 1, tg)
+        tau_D[j] = 0.5 * GJ[j] * w * w + 0.5 * EI[j] * (ugx * ugx + ugy * ugy) * dtg
+        tau_A[j] = 0.0
+        g0[j] = w + horner(coef, j, 2, tg) * dtg
+        psi_start[j] = psi0[j] + D[j] * w
+    before = np.zeros((N, N), dtype=dt)       # (j, l): sum over k' < k of dh_k'l c_k'j0
+    a = np.empty((2, n), dtype=dt)
+    c = np.empty((N, n), dtype=dt)
+    Rx = np.empty(N, dtype=dt)
+    Ry = np.empty(N, dtype=dt)
+    us = np.empty((N, 3), dtype=dt)
+    dp = np.empty(N, dtype=dt)
+    cs = np.empty(N, dtype=dt)
+    sn = np.empty(N, dtype=dt)
+    locq = np.empty(N, dtype=dt)
+    Gp = np.empty(N, dtype=dt)
+    Z0 = np.empty(N, dtype=dt)
+    pm = np.empty(N, dtype=dt)
+    for k in range(S):
+        off = N + k * Cn
+        hk = h[k]
+        for p in range(n):
+            a[0, p] = q[off + p] * qmask[off + p]
+            a[1, p] = q[off + n + p] * qmask[off + n + p]
+        for j in range(N):
+            for p in range(n):
+                c[j, p] = q[off + (2 + j) * n + p] * qmask[off + (2 + j) * n + p]
+            pm[j] = curved[k, j] * presc[k]
+            Z0[j] = horner_integral(coef, j, start[k] - tau[j])
+            Gp[j] = 0.0
+        s_loc = 0.0
+        for i in range(Q):
+            s_node = start[k] + 0.5 * (xq[i] + 1.0) * hk
+            frac = 0.5 * (xq[i] + 1.0)
+            ux = 0.0
+            uy = 0.0
+            for p in range(n):
+                ux += a[0, p] * phi[i, p]
+                uy += a[1, p] * phi[i, p]
+            for j in range(N):
+                t = s_node - tau[j]
+                for cc in range(3):
+                    us[j, cc] = horner(coef, j, cc, t) * curved[k, j]
+                lq = 0.0
+                d1 = 0.0
+                for p in range(n):
+                    lq += c[j, p] * Qb[i, p]
+                    d1 += c[j, p] * phi[i, p]
+                locq[j] = lq
+                ps = (psi_start[j] + 0.5 * hk * lq
+                      + (horner_integral(coef, j, t) - Z0[j]) * pm[j])
+                cs[j] = math.cos(ps)
+                sn[j] = math.sin(ps)
+                Rx[j] = cs[j] * us[j, 0] - sn[j] * us[j, 1]
+                Ry[j] = sn[j] * us[j, 0] + cs[j] * us[j, 1]
+                dp[j] = d1 + pm[j] * us[j, 2]
+            for j in range(N):        # a prescribed section's strain: its precurvature
+                held = presc[k] * present[k, j]
+                ux += held * Rx[j]
+                uy += held * Ry[j]
+            dens = 0.0
+            gsum = 0.0
+            for j in range(N):
+                EIp = EI[j] * present[k, j]
+                GJp = GJ[j] * present[k, j]
+                ex = ux - Rx[j]
+                ey = uy - Ry[j]
+                tors = dp[j] - us[j, 2]
+                dens += 0.5 * EIp * (ex * ex + ey * ey) + 0.5 * GJp * tors * tors
+                gpsi = W[k, i] * EIp * (Ry[j] * ux - Rx[j] * uy)
+                Gp[j] += gpsi
+                s_loc += gpsi * 0.5 * locq[j]
+                t = s_node - tau[j]
+                dx = horner_derivative(coef, j, 0, t) * curved[k, j]
+                dy = horner_derivative(coef, j, 1, t) * curved[k, j]
+                dz = horner_derivative(coef, j, 2, t) * curved[k, j]
+                px = cs[j] * dx - sn[j] * dy
+                py = sn[j] * dx + cs[j] * dy
+                gstar = -W[k, i] * (EIp * (ex * px + ey * py) + GJp * tors * dz)
+                gsum += gstar
+                tau_D[j] += gstar
+            for l in range(N):
+                tau_D[l] += (dens * 0.5 * wq[i] * dh[k, l] * active[k]
+                             + gsum * (dstart[k, l] + frac * dh[k, l]))
+        for l in range(N):
+            acc = s_loc * dh[k, l] + g0[l] * Gp[l]
+            for j in range(N):
+                acc += Gp[j] * before[j, l]
+            tau_D[l] += acc
+            tau_A[l] += Gp[l]
+        for j in range(N):
+            for l in range(N):
+                before[j, l] += dh[k, l] * c[j, 0]
+            psi_start[j] += hk * c[j, 0] + (horner_integral(coef, j, start[k] - tau[j] + hk)
+                                            - Z0[j]) * pm[j]
+
+
+@njit(cache=True, nogil=True)
+def _partials_serial(q, qmask, D, L, Ls, EI, GJ, coef, tau, psi0, start, h, present, curved,
+                     active, presc, W, xq, wq, phi, Qb, tau_D, tau_A):
+    for b in range(q.shape[0]):
+        partials_one(q[b], qmask[b], D[b], L[b], Ls[b], EI[b], GJ[b], coef[b], tau[b], psi0[b],
+                     start[b], h[b], present[b], curved[b], active[b], presc[b], W[b], xq, wq,
+                     phi, Qb, tau_D[b], tau_A[b])
+
+
+@njit(cache=True, nogil=True, parallel=True)
+def _partials_parallel(q, qmask, D, L, Ls, EI, GJ, coef, tau, psi0, start, h, present, curved,
+                       active, presc, W, xq, wq, phi, Qb, tau_D, tau_A):
+    for b in prange(q.shape[0]):
+        partials_one(q[b], qmask[b], D[b], L[b], Ls[b], EI[b], GJ[b], coef[b], tau[b], psi0[b],
+                     start[b], h[b], present[b], curved[b], active[b], presc[b], W[b], xq, wq,
+                     phi, Qb, tau_D[b], tau_A[b])
 
 
 @_jit

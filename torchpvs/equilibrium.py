@@ -12,6 +12,7 @@ from .basis import legendre_basis
 from .batch_linalg import active_index, compact_scaled, take
 from .forces import ForceState, equilibrium_forces, paper_actuation
 from .jacobians import control_jacobians
+from .kernel import KERNELS
 from .lie import exp_se3
 from .mechanics import (
     angle_offsets,
@@ -313,8 +314,9 @@ class Equilibrium:
         elif opts.compute_forces:
             cache = None if plan is None else (
                 lambda name, compute: plan.cached(res.disc, lay, name, compute))
-            forces, torques, insert_side, kink = equilibrium_forces(tubes, state, resolver.near,
-                                                                    cache=cache)
+            forces, torques, insert_side, kink = equilibrium_forces(
+                tubes, state, resolver.near, cache=cache,
+                partials=KERNELS[getattr(opts, "kernel", "newton")].partials)
         conv = res.converged
         # A verdict needs an equilibrium: where the solve did not converge, the state is not
         # one, and its Hessian's sign says nothing about stability (a precurvature of 1e6 1/m

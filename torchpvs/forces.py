@@ -68,7 +68,7 @@ class ForceState(NamedTuple):
     node_constants: NodeConstants | None = None
 
 
-def envelope_forces(tubes, res: ForceState):
+def envelope_forces(tubes, res: ForceState, partials=None):
     """``tau_D = dU*/dD``, ``tau_alpha = dU*/dalpha`` by the envelope theorem: at an equilibrium
     the total derivative equals the partial derivative at fixed coordinates ``q`` (the sections
     move with ``D``, the coordinates are strains on the normalized section coordinate).
@@ -76,10 +76,13 @@ def envelope_forces(tubes, res: ForceState):
     Without tip load the partial derivative is evaluated in closed form
     (:func:`envelope_forces_closed_form`); with a load, whose work moves with ``D`` through the
     whole Magnus chain, by a reverse pass through the layout and the potential
-    (:func:`envelope_forces_autograd`, the reference the closed form is tested against)."""
+    (:func:`envelope_forces_autograd`, the reference the closed form is tested against).
+    ``partials``: the closed form's implementation, ``partials(q, lay, tubes, tab, disc,
+    const) -> (tau_D, tau_alpha)`` (a kernel's :attr:`~torchpvs.kernel.Kernel.partials`;
+    default :func:`closed_form_partials`)."""
     if res.with_load:
         return envelope_forces_autograd(tubes, res)
-    return envelope_forces_closed_form(tubes, res)
+    return envelope_forces_closed_form(tubes, res, partials)
 
 
 def envelope_forces_autograd(tubes, res: ForceState):
@@ -100,7 +103,7 @@ def envelope_forces_autograd(tubes, res: ForceState):
     return gD.detach(), gA.detach()
 
 
-def envelope_forces_closed_form(tubes, res: ForceState):
+def envelope_forces_closed_form(tubes, res: ForceState, partials=None):
     """:func:`envelope_forces` for elements without tip load, in closed form: the partial
     derivatives at fixed ``q`` of the stored energy (docs/physics.md)
 
@@ -120,7 +123,8 @@ def envelope_forces_closed_form(tubes, res: ForceState):
         lay = res.lay
         if lay is None or lay.D.shape != D.shape or not torch.equal(lay.D, D):
             lay = build_layout(tubes, D, res.alpha, res.F, res.M, res.loaded, res.disc)
-        return closed_form_partials(res.q, lay, tubes, res.tab, res.disc, res.node_constants)
+        return (partials or closed_form_partials)(res.q, lay, tubes, res.tab, res.disc,
+                                                  res.node_constants)
 
 
 def closed_form_partials(q, lay: Layout, tubes, tab: Tables, disc: Discretization,
@@ -385,7 +389,7 @@ def _kink_plan(tubes, D: torch.Tensor, delta: float, tol: float) -> KinkPlan:
 
 
 def equilibrium_forces(tubes, res: ForceState, resolve, delta: float = 1e-7, tol: float = 1e-9,
-                       cache=None):
+                       cache=None, partials=None):
     """Actuation forces and torques ``(B, N)`` at the equilibrium ``res``,
     with one-sided insertion forces where ``U*(D_j)`` has a kink: material of tube ``j`` changing
     kind exactly at the orifice -- its base (``D_j = 0``: the guide torsion appears), its
@@ -401,6 +405,7 @@ def equilibrium_forces(tubes, res: ForceState, resolve, delta: float = 1e-7, tol
 
     ``cache(key, compute)``: where given, the kink analysis (:func:`_kink_plan`) is kept with
     the solve's layout (``torchpvs.plan.Plan.cached``) and reused while the insertions are.
+    ``partials``: the closed form's implementation (:func:`envelope_forces`).
 
     Returns ``(forces = retraction side, torques, insertion side, kink mask)``, all ``(B, N)``;
     the insertion side is NaN where the carriage cannot move in (blocked by the next base).
@@ -424,7 +429,7 @@ def equilibrium_forces(tubes, res: ForceState, resolve, delta: float = 1e-7, tol
             (name, delta, tol), lambda: node_constants(state.lay, xq)))
 
     if kp.sel is None:
-        forces, torques = envelope_forces(tubes, with_constants(res, "force_nodes"))
+        forces, torques = envelope_forces(tubes, with_constants(res, "force_nodes"), partials)
         insertion = forces.clone()
         insertion[blocked] = float("nan")
         return forces, torques, insertion, kink
@@ -438,7 +443,8 @@ def equilibrium_forces(tubes, res: ForceState, resolve, delta: float = 1e-7, tol
         both = both._replace(lay=type(res.lay)(*(torch.cat(pair) for pair in
                                                  zip(res.lay, side.lay, strict=True))))
     tubes_both = tube_rows(tubes, torch.cat([torch.arange(B, device=sel.device), sel]))
-    allf, allt = envelope_forces(tubes_both, with_constants(both, "force_nodes_sides"))
+    allf, allt = envelope_forces(tubes_both, with_constants(both, "force_nodes_sides"),
+                                 partials)
     forces, torques, vals = allf[:B], allt[:B], allf[B:][torch.arange(len(sel)), sj]
     insertion = forces.clone()
     insertion[blocked] = float("nan")

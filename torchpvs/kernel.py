@@ -5,7 +5,8 @@ The driver (:mod:`torchpvs.solver` with :mod:`torchpvs.order_control` and
 plan), and assembles the outputs; every computation it makes *per batch element* goes through
 one :class:`Kernel`: the cold-start guess, the Newton solve, the single Newton steps of the
 order estimate and the kink re-solves, the new-section step of the one-sided forces, the
-tip pose, and the SPD solves of the rotation predictor. A kernel is a :class:`Kernel` of plain
+tip pose, the closed-form partials of the actuation forces, and the SPD solves of the rotation
+predictor. A kernel is a :class:`Kernel` of plain
 functions registered in :data:`KERNELS` under a name (``SolverOptions(kernel=name)``), in the
 spirit of torchdiffeq's ``SOLVERS``; adding one (a compiled CPU kernel, a fused GPU kernel)
 touches no driver code, and a kernel that implements only some functions reuses the eager
@@ -25,6 +26,7 @@ import torch
 
 from . import compiled
 from .batch_linalg import active_index, chunked, compact, compact_scaled, expand, spd_solve, take
+from .forces import closed_form_partials
 from .mechanics import (
     Maps,
     compact_q,
@@ -64,6 +66,10 @@ class Kernel(NamedTuple):
             ``maps.pose`` or of finer Magnus nodes).
         spd_solve: ``spd_solve(H (B, n, n), rhs (B, n)) -> (x, ok)``: ``H^-1 rhs`` for the
             stiffness at a solution (the rotation predictor).
+        partials: ``partials(q, lay, tubes, tab, disc, constants) -> (tau_D, tau_alpha)``
+            ``(B, N)`` [N, N·m]: the envelope partials of the unloaded energy at fixed ``q``
+            (:func:`torchpvs.forces.closed_form_partials`; ``constants`` its node constants
+            or None), for the actuation forces and their one-sided values at kinks.
     """
 
     guess: Callable[..., torch.Tensor]
@@ -72,6 +78,7 @@ class Kernel(NamedTuple):
     section_step: Callable[..., tuple[torch.Tensor, torch.Tensor]]
     pose: Callable[..., tuple]
     spd_solve: Callable[[torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
+    partials: Callable[..., tuple[torch.Tensor, torch.Tensor]]
 
 
 def newton_step(q: torch.Tensor, prob: Problem) -> tuple[torch.Tensor, torch.Tensor]:
@@ -107,8 +114,8 @@ def _one_newton_step(q, prob: Problem):
     return torch.where(ok[:, None], q1, q), ok
 
 
-# A section this short (x the longest tube) counts as vanishing for new_section_step.
-_VANISHING = 1e-5
+#: A section this short (x the longest tube) counts as vanishing for the new-section step.
+VANISHING = 1e-5
 
 
 def new_section_step(q: torch.Tensor, prob: Problem, new: torch.Tensor,
@@ -122,7 +129,7 @@ def new_section_step(q: torch.Tensor, prob: Problem, new: torch.Tensor,
     factorization. Unloaded problems only (a tip load's work moves with the section's strains
     at the same order). Returns the coordinates and the rows where it applied (new coordinates
     in one compact section, no guide twist among them, the section shorter than
-    ``_VANISHING x length``, its block positive definite); other rows are returned unchanged."""
+    ``VANISHING x length``, its block positive definite); other rows are returned unchanged."""
     maps = prob.maps
     cidx = maps.cidx
     B, nq = q.shape
@@ -141,7 +148,7 @@ def new_section_step(q: torch.Tensor, prob: Problem, new: torch.Tensor,
     L, info = torch.linalg.cholesky_ex(A)
     d = -torch.cholesky_solve(gs[..., None], L)[..., 0] * m
     ok = ((has.sum(-1) == 1) & ~newc[:, :N].any(-1) & (info == 0) & torch.isfinite(d).all(-1)
-          & (maps.h[rows, sec] <= _VANISHING * length))
+          & (maps.h[rows, sec] <= VANISHING * length))
     X = qc[:, N:].reshape(B, S, cn)
     X[rows, sec] = X[rows, sec] + d
     q1 = expand_q(torch.cat([qc[:, :N], X.reshape(B, -1)], -1), cidx, nq)
@@ -181,7 +188,8 @@ def default_guess(lay: Layout, maps: Maps, tab: Tables, disc: Discretization,
 
 #: The reference kernel: batched eager torch on any device.
 EAGER = Kernel(guess=default_guess, solve=newton, step=newton_step,
-               section_step=new_section_step, pose=tip_pose, spd_solve=spd_solve)
+               section_step=new_section_step, pose=tip_pose, spd_solve=spd_solve,
+               partials=closed_form_partials)
 
 
 def _compiled_solve(q, prob, L_char, **kwargs):
@@ -194,15 +202,28 @@ def _compiled_step(q, prob):
     return newton_step(q, prob) if out is None else out
 
 
+def _compiled_section_step(q, prob, new, length):
+    out = compiled.section_step(q, prob, new, VANISHING * length)
+    return new_section_step(q, prob, new, length) if out is None else out
+
+
+def _compiled_partials(q, lay, tubes, tab, disc, constants=None):
+    out = compiled.partials(q, lay, tubes, tab)
+    return closed_form_partials(q, lay, tubes, tab, disc, constants) if out is None else out
+
+
 def _compiled_pose(q, lay, tab, constants):
     out = compiled.pose(q, lay, tab, constants)
     return tip_pose(q, lay, tab, constants) if out is None else out
 
 
-#: The compiled CPU kernel (:mod:`torchpvs.compiled`, numba): the Newton solve and step and
-#: the tip pose per element, the eager kernel wherever it does not apply (GPU tensors; a tip
-#: load for the solve and step).
-COMPILED = EAGER._replace(solve=_compiled_solve, step=_compiled_step, pose=_compiled_pose)
+#: The compiled CPU kernel (:mod:`torchpvs.compiled`, numba): the Newton solve and step, the
+#: new-section step, the tip pose and the closed-form force partials per element; the eager
+#: kernel wherever it does not apply (GPU tensors; a tip load for the solve and step; partials
+#: that must carry a graph).
+COMPILED = EAGER._replace(solve=_compiled_solve, step=_compiled_step,
+                          section_step=_compiled_section_step, pose=_compiled_pose,
+                          partials=_compiled_partials)
 
 #: Kernels by name (``SolverOptions.kernel``).
 KERNELS: dict[str, Kernel] = {"newton": EAGER, "compiled": COMPILED}
