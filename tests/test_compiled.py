@@ -13,6 +13,9 @@ from __future__ import annotations
 
 import dataclasses
 import math
+import os
+import subprocess
+import sys
 
 import numpy as np
 import pytest
@@ -248,3 +251,19 @@ def test_the_compiled_new_section_step_is_the_eager_one(monkeypatch):
                  options=SolverOptions(kernel="section-check"))
     assert sum(applied for applied, _ in seen) >= 12, seen
     assert max(d for _, d in seen) < 1e-12, seen
+
+
+def test_a_one_thread_batch_solve_launches_no_numba_thread_pool():
+    """With one torch thread a batch of >= 8 runs the serial loop and never starts numba's
+    thread pool: its OpenMP worker would spin a second core for the rest of the process (a
+    one-thread training used 1.8 cores). In a fresh process, as a training run starts."""
+    code = ("import torch, numba, torchpvs; torch.set_num_threads(1); "
+            "sc = torchpvs.load_scene('renda2021_fig3'); "
+            "r = torchpvs.solve(sc, rotation=torch.rand(16, 2, dtype=torch.float64), "
+            "options=torchpvs.SolverOptions(kernel='compiled')); "
+            "assert bool(r.converged.all())\n"
+            "try:\n    print('layer', numba.threading_layer())\n"
+            "except ValueError:\n    print('no pool')")
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
+                         check=True, env=dict(os.environ, OMP_NUM_THREADS="1"))
+    assert out.stdout.split()[-2:] == ["no", "pool"], out.stdout

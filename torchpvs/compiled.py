@@ -95,8 +95,13 @@ def _set_threads(B: int) -> bool:
     if B < _PARALLEL_FROM:
         return False
     n = min(torch.get_num_threads(), numba.config.NUMBA_NUM_THREADS)
-    numba.set_num_threads(max(1, n))
-    return n > 1
+    if n <= 1:
+        # Not even set_num_threads(1): it launches numba's thread pool, whose OpenMP worker
+        # then spins a second core for as long as the process runs (measured: a one-thread
+        # training loop used 1.8 cores).
+        return False
+    numba.set_num_threads(n)
+    return True
 
 
 def solve(q: torch.Tensor, prob: Problem, L_char: torch.Tensor, *, method: str, tol: float,
