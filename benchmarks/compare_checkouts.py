@@ -1,0 +1,110 @@
+"""Two checkouts of torchpvs side by side: the default (compiled) solve of each, rounds alternating.
+
+    python benchmarks/compare_checkouts.py OLD_TREE NEW_TREE [--rounds 3]
+
+e.g. ``git worktree add /tmp/old <commit>`` then
+``python benchmarks/compare_checkouts.py /tmp/old .``. Each round runs this script's probe in a
+fresh process per checkout (``PYTHONPATH=<tree>``, one torch thread), old then new: Fig. 3 and
+the three-tube robot, 32 configurations (the last tube's rotation over [0, 250] deg), B = 1
+warm from the equilibrium 1 deg away and cold, the control step
+(``solve(...).jacobians(compliance=False)``, 8 configurations) and B = 1024 warm; each figure
+the best of 5 passes, in ms per solve. Printed: every round, then the best over rounds and the
+ratio old / new. A change's speed-up is measured as a ratio in one run, never against a figure
+from another day.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import os
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+
+def probe() -> dict:
+    import numpy as np
+    import torch
+    torch.set_num_threads(1)
+    import torchpvs
+    sys.path.insert(0, str(Path(__file__).resolve().parent))
+    from fast_path import bench_scene  # a sibling script: the benchmark robots
+    opts = torchpvs.SolverOptions()
+    out = {}
+    for name in ("fig3", "three_tube"):
+        sc = bench_scene(name)
+        N, n = len(sc.tubes), 32
+        rot = torch.zeros(n, N, dtype=torch.float64)
+        rot[:, -1] = torch.tensor(np.radians(np.linspace(0, 250, n)))
+        ins = torch.tensor(sc.actuation.insertion, dtype=torch.float64).expand(n, N).contiguous()
+        prev = [torchpvs.solve(sc, insertion=ins[i:i + 1], rotation=rot[i:i + 1] - math.radians(1),
+                               options=opts) for i in range(n)]
+
+        def warm():
+            for i in range(n):
+                torchpvs.solve(sc, insertion=ins[i:i + 1], rotation=rot[i:i + 1],
+                               initial=prev[i], options=opts)
+
+        def cold():
+            for i in range(n):
+                torchpvs.solve(sc, insertion=ins[i:i + 1], rotation=rot[i:i + 1], options=opts)
+
+        def control():
+            for i in range(8):
+                torchpvs.solve(sc, insertion=ins[i:i + 1], rotation=rot[i:i + 1],
+                               initial=prev[i], options=opts).jacobians(compliance=False)
+
+        ins_b, rot_b = ins.repeat(32, 1), rot.repeat(32, 1)
+        prev_b = torchpvs.solve(sc, insertion=ins_b, rotation=rot_b - math.radians(1),
+                                options=opts)
+
+        def warm_b():
+            torchpvs.solve(sc, insertion=ins_b, rotation=rot_b, initial=prev_b, options=opts)
+
+        for key, fn, count in (("B1 warm", warm, n), ("B1 cold", cold, n),
+                               ("control step", control, 8), ("B1024 warm", warm_b, 1024)):
+            fn()
+            best = math.inf
+            for _ in range(5):
+                t = time.perf_counter()
+                fn()
+                best = min(best, time.perf_counter() - t)
+            out[f"{name}: {key}"] = best / count * 1e3
+    return out
+
+
+def main() -> None:
+    if len(sys.argv) > 1 and sys.argv[1] == "--probe":
+        print(json.dumps(probe()))
+        return
+    ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    ap.add_argument("old")
+    ap.add_argument("new")
+    ap.add_argument("--rounds", type=int, default=3)
+    args = ap.parse_args()
+    trees = {"old": Path(args.old).resolve(), "new": Path(args.new).resolve()}
+    for tag, tree in trees.items():
+        if not (tree / "torchpvs" / "__init__.py").is_file():
+            raise SystemExit(f"{tag}: {tree} holds no torchpvs/ package")
+    best: dict[str, dict[str, float]] = {"old": {}, "new": {}}
+    for r in range(args.rounds):
+        for tag, tree in trees.items():
+            env = dict(os.environ, PYTHONPATH=str(tree), OMP_NUM_THREADS="1")
+            res = json.loads(subprocess.run(
+                [sys.executable, __file__, "--probe"], env=env, check=True, text=True,
+                capture_output=True, cwd=tree).stdout.splitlines()[-1])
+            print(f"round {r + 1} {tag}: " + ", ".join(f"{k} {v:.3f}" for k, v in res.items()),
+                  flush=True)
+            for k, v in res.items():
+                best[tag][k] = min(v, best[tag].get(k, math.inf))
+    print(f"\nms per solve, best of {args.rounds} rounds: old / new (old/new)")
+    for k in best["old"]:
+        o, n = best["old"][k], best["new"][k]
+        print(f"  {k:<26} {o:8.3f} / {n:8.3f}  ({o / n:.2f}x)")
+
+
+if __name__ == "__main__":
+    main()
