@@ -195,10 +195,11 @@ def partials(q: torch.Tensor, lay, tubes, tab) -> tuple[torch.Tensor, torch.Tens
         t = t.detach().to(dtype)
         return np.ascontiguousarray((t if shape is None else t.expand(shape)).numpy())
 
-    tau_D = np.empty((B, N), dtype=_numpy(q).dtype)
-    tau_A = np.empty((B, N), dtype=tau_D.dtype)
+    qa = a(q)
+    tau_D = np.empty((B, N), dtype=qa.dtype)
+    tau_A = np.empty((B, N), dtype=qa.dtype)
     run = _partials_parallel if _set_threads(B) else _partials_serial
-    run(a(q), a(lay.qmask), a(lay.D), a(tubes.length, (B, N)), a(tubes.straight, (B, N)),
+    run(qa, a(lay.qmask), a(lay.D), a(tubes.length, (B, N)), a(tubes.straight, (B, N)),
         a(lay.EI), a(lay.GJ), a(lay.coef), a(lay.tau), a(lay.psi0), a(lay.start), a(lay.h),
         a(lay.present), a(lay.curved), a(lay.active), a(lay.presc), a(lay.W),
         a(_get(tab, "xq")), a(_get(tab, "wq")), a(_get(tab, "phi_q")), a(_get(tab, "Q_q")),

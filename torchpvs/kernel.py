@@ -4,10 +4,10 @@ The driver (:mod:`torchpvs.solver` with :mod:`torchpvs.order_control` and
 :mod:`torchpvs.predictor`) chooses discretizations, ramps loads, builds layouts and maps (the
 plan), and assembles the outputs; every computation it makes *per batch element* goes through
 one :class:`Kernel`: the cold-start guess, the Newton solve, the single Newton steps of the
-order estimate and the kink re-solves, the new-section step of the one-sided forces, the
-tip pose, the closed-form partials of the actuation forces, and the SPD solves of the rotation
-predictor. A kernel is a :class:`Kernel` of plain
-functions registered in :data:`KERNELS` under a name (``SolverOptions(kernel=name)``), in the
+order estimate and the kink re-solves, the new-section step of the one-sided forces, the tip
+pose, the closed-form partials of the actuation forces, and the SPD solves of the rotation
+predictor. A kernel is a :class:`Kernel` of plain functions registered in :data:`KERNELS`
+under a name (``SolverOptions(kernel=name)``), in the
 spirit of torchdiffeq's ``SOLVERS``; adding one (a compiled CPU kernel, a fused GPU kernel)
 touches no driver code, and a kernel that implements only some functions reuses the eager
 ones for the rest (``EAGER._replace(solve=my_solve)``).
