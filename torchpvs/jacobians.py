@@ -106,25 +106,28 @@ def actuator_stiffness(eq, rows=None) -> torch.Tensor:
     return _schur(eq, _rows_of(eq, rows))[0]
 
 
-def _schur(eq, rows: torch.Tensor):
-    """``(K (B, 2N, 2N), Z (B, nq, 2N) or None)``: the actuator stiffness of batch ``rows`` and,
-    for a conservative load, ``Z = H^-1 U_qx`` (so ``dq*/dx = -Z``; zero on the inactive
-    coordinates). ``Z`` is ``None`` under a tip moment (the stiffness then comes from the
-    implicit backward)."""
+def _schur(eq, rows: torch.Tensor, tip: bool = False):
+    """``(K (B, 2N, 2N), Z (B, nq, 2N) or None, tip partials or None)``: the actuator stiffness
+    of batch ``rows`` and, for a conservative load, ``Z = H^-1 U_qx`` (so ``dq*/dx = -Z``; zero
+    on the inactive coordinates). ``Z`` is ``None`` under a tip moment (the stiffness then comes
+    from the implicit backward). With ``tip``, the tip partials ``(P_q, P_x)`` of
+    :func:`_tip_partials` come from the stiffness's own reverse pass where its rotation rows are
+    read off ``H`` (one pass instead of two), else ``None``."""
     q0 = eq.q
     B, m = len(rows), 2 * eq.context.insertion.shape[1]
     if B == 0:
         return (torch.zeros(0, m, m, dtype=q0.dtype, device=q0.device),
-                torch.zeros(0, q0.shape[-1], m, dtype=q0.dtype, device=q0.device))
+                torch.zeros(0, q0.shape[-1], m, dtype=q0.dtype, device=q0.device), None)
     ctx = eq.context
     if ctx.implicit.has_moment:
-        return _implicit_rows(eq, rows, stiffness=True, tip=False), None
+        return _implicit_rows(eq, rows, stiffness=True, tip=False), None, None
     lu, piv, scale = _adjoint_rows(eq, rows)
     qmask = ctx.implicit.qmask[rows]                                      # (B, nq)
     N = m // 2
     D0 = ctx.insertion.detach()[rows]
+    partials = None
     if bool((qmask[:, :N] > 0).all()) and bool((D0 > 0).all()):
-        Uxq, Uxx = _rotation_rows_from_hessian(eq, rows, D0)
+        Uxq, Uxx, partials = _rotation_rows_from_hessian(eq, rows, D0, tip)
     else:
         q, info, (D, A, F, M), tubes = _replicated(eq, m, rows)
         D.requires_grad_(True)
@@ -140,7 +143,7 @@ def _schur(eq, rows: torch.Tensor):
     Uqx = (Uxq.reshape(B, m, -1) * qmask[:, None]).transpose(1, 2)          # (B, nq, 2N)
     Z = _tangent_solve((lu, piv, scale), Uqx) * qmask[..., None]
     K = Uxx - Uqx.transpose(1, 2) @ Z
-    return 0.5 * (K + K.transpose(1, 2)), Z
+    return 0.5 * (K + K.transpose(1, 2)), Z, partials
 
 
 def _tangent_solve(factors, rhs: torch.Tensor) -> torch.Tensor:
@@ -161,9 +164,20 @@ def _tip_partials(eq, rows: torch.Tensor):
     pick = torch.eye(6, dtype=q.dtype, device=q.device).repeat(B, 1)        # (B 6, 6)
     with torch.enable_grad():
         lay = build_layout(tubes, D, A, F, M, info.loaded, info.disc)
-        p, R, _ = tip_pose(q, lay, info.tab)
-        tip = torch.cat([p, skew_vee(R @ R.detach().transpose(-1, -2))], -1)
-        Pq, PD, PA = torch.autograd.grad((tip * pick).sum(), (q, D, A))
+        Pq, PD, PA = torch.autograd.grad((_tip_twist(q, lay, info) * pick).sum(), (q, D, A))
+    return _tip_rows(eq, rows, Pq, PD, PA)
+
+
+def _tip_twist(q, lay, info) -> torch.Tensor:
+    """``(..., 6)`` the tip position and the rotation ``vee(R R0^T)`` (``R0`` the detached
+    rotation): its derivatives are the tip twist's."""
+    p, R, _ = tip_pose(q, lay, info.tab)
+    return torch.cat([p, skew_vee(R @ R.detach().transpose(-1, -2))], -1)
+
+
+def _tip_rows(eq, rows, Pq, PD, PA):
+    """``(P_q (B, 6, nq), P_x (B, 6, 2N))`` from the replicated reverse pass's gradients."""
+    B = len(rows)
     qmask = eq.context.implicit.qmask[rows]
     return (Pq.reshape(B, 6, -1) * qmask[:, None],
             torch.cat([PD, PA], -1).reshape(B, 6, -1))
@@ -184,10 +198,10 @@ def tip_jacobian(eq, rows=None) -> torch.Tensor:
 
 def _control_blocks(eq, rows: torch.Tensor):
     """``(K (B, 2N, 2N), J_x (B, 6, 2N))`` of batch ``rows``."""
-    K, Z = _schur(eq, rows)
+    K, Z, partials = _schur(eq, rows, tip=True)
     if Z is None:   # a tip moment: through the implicit backward
         return K, _implicit_rows(eq, rows, stiffness=False, tip=True)
-    Pq, Px = _tip_partials(eq, rows)
+    Pq, Px = partials if partials is not None else _tip_partials(eq, rows)
     return K, Px - Pq @ Z
 
 
@@ -214,16 +228,22 @@ def _implicit_rows(eq, rows: torch.Tensor, *, stiffness: bool, tip: bool) -> tor
     return torch.cat([GD, GA], -1).reshape(B, m, n)
 
 
-def _rotation_rows_from_hessian(eq, rows, D0):
-    """``(U_xq (B, 2N, nq), U_xx (B, 2N, 2N))`` with the insertion rows by one double-backward
-    pass over the batch repeated ``N`` times (not ``2N``) and the rotation rows read off the
-    equilibrium's Hessian: the potential depends on ``alpha_j`` and the guide twist ``w_j``
-    only through ``alpha_j + D_j w_j`` (plus the guide's ``1/2 GJ_j D_j w_j^2``), so where every
-    ``D_j > 0`` (``w_j`` a coordinate) ``U_{alpha_j .} = (H[w_j, .] - GJ_j D_j e_{w_j}) / D_j``
-    and ``U_{alpha_j alpha_k} = (H[w_j, w_k] - delta_jk GJ_j D_j) / (D_j D_k)``."""
+def _rotation_rows_from_hessian(eq, rows, D0, tip: bool = False):
+    """``(U_xq (B, 2N, nq), U_xx (B, 2N, 2N), tip partials or None)`` with the insertion rows
+    by one double-backward pass over the batch repeated ``N`` times (not ``2N``) and the
+    rotation rows read off the equilibrium's Hessian: the potential depends on ``alpha_j`` and
+    the guide twist ``w_j`` only through ``alpha_j + D_j w_j`` (plus the guide's
+    ``1/2 GJ_j D_j w_j^2``), so where every ``D_j > 0`` (``w_j`` a coordinate)
+    ``U_{alpha_j .} = (H[w_j, .] - GJ_j D_j e_{w_j}) / D_j`` and
+    ``U_{alpha_j alpha_k} = (H[w_j, w_k] - delta_jk GJ_j D_j) / (D_j D_k)``.
+
+    With ``tip`` the same pass repeats the batch ``N + 6`` times and also gives the tip
+    partials ``(P_q, P_x)`` of :func:`_tip_partials`: one layout and one reverse pass for the
+    whole control step (the op count, not the flops, bounds it at small batches)."""
     B, N = D0.shape
-    q, info, (D, A, F, M), tubes = _replicated(eq, N, rows)
-    pick = torch.eye(N, dtype=q.dtype, device=q.device).repeat(B, 1)        # (B N, N)
+    m = N + 6 * tip
+    q, info, (D, A, F, M), tubes = _replicated(eq, m, rows)
+    pick = torch.eye(m, dtype=q.dtype, device=q.device).repeat(B, 1)        # (B m, m)
     D, A, q = (t.requires_grad_(True) for t in (D, A, q))
     with torch.enable_grad():
         lay = build_layout(tubes, D, A, F, M, info.loaded, info.disc)
@@ -234,7 +254,11 @@ def _rotation_rows_from_hessian(eq, rows, D0):
             # the closed-form dU/dD (forces.closed_form_partials) differentiated once, instead
             # of a double backward through the energy
             tau_D = closed_form_partials(q, lay, tubes, info.tab, info.disc)[0]
-        UDq, UDD, UDA = torch.autograd.grad((tau_D * pick).sum(), (q, D, A))
+        out = torch.cat([tau_D, _tip_twist(q, lay, info)], -1) if tip else tau_D
+        Gq, GD, GA = (g.reshape(B, m, -1) for g in
+                      torch.autograd.grad((out * pick).sum(), (q, D, A)))
+    partials = (_tip_rows(eq, rows, *(g[:, N:] for g in (Gq, GD, GA))) if tip else None)
+    UDq, UDD, UDA = (g[:, :N] for g in (Gq, GD, GA))
     H = eq.context.implicit.hessian()[rows]                                # (B, nq, nq)
     GJ = tube_rows(eq.context.tubes, rows).GJ.detach().expand(B, N)
     GJD = torch.diag_embed(GJ * D0)                                         # (B, N, N)
@@ -242,11 +266,10 @@ def _rotation_rows_from_hessian(eq, rows, D0):
     UAq[:, :, :N] -= GJD
     UAq = UAq / D0[:, :, None]
     UAA = (H[:, :N, :N] - GJD) / (D0[:, :, None] * D0[:, None, :])
-    UDA = UDA.reshape(B, N, N)
-    Uxq = torch.cat([UDq.reshape(B, N, -1), UAq], 1)
-    Uxx = torch.cat([torch.cat([UDD.reshape(B, N, N), UDA], -1),
+    Uxq = torch.cat([UDq, UAq], 1)
+    Uxx = torch.cat([torch.cat([UDD, UDA], -1),
                      torch.cat([UDA.transpose(1, 2), UAA], -1)], 1)
-    return Uxq, Uxx
+    return Uxq, Uxx, partials
 
 
 def control_jacobians(eq, *, compliance: bool = True,
