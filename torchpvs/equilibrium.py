@@ -86,6 +86,13 @@ class Resolver(Protocol):
         """The same robot, actuation and load solved with other ``options``."""
         ...
 
+    def at(self, insertion: torch.Tensor, rows: torch.Tensor, initial: torch.Tensor,
+           options: SolverOptions) -> Equilibrium:
+        """Batch rows ``rows (k,)`` solved at other insertions ``insertion (k, N)`` [m] (same
+        rotations and load) with ``options``, warm from coordinates ``initial (k, nq)``: the
+        one-sided control Jacobians at kinks (:mod:`torchpvs.jacobians`)."""
+        ...
+
 
 @dataclass(frozen=True, eq=False)
 class SolveContext:

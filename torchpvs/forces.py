@@ -27,9 +27,9 @@ from .mechanics import (
 )
 from .sections import Discretization, Layout, Tables, build_layout, tube_rows
 
-__all__ = ["ForceState", "closed_form_partials", "envelope_forces", "envelope_forces_autograd",
-           "envelope_forces_closed_form", "equilibrium_forces", "paper_actuation",
-           "paper_scope_check"]
+__all__ = ["KINK_DELTA", "KINK_TOL", "ForceState", "closed_form_partials", "envelope_forces",
+           "envelope_forces_autograd", "envelope_forces_closed_form", "equilibrium_forces",
+           "kink_mask", "paper_actuation", "paper_scope_check"]
 
 
 class ForceState(NamedTuple):
@@ -360,16 +360,29 @@ class KinkPlan(NamedTuple):
     Dn: torch.Tensor | None
 
 
-def _kink_plan(tubes, D: torch.Tensor, delta: float, tol: float) -> KinkPlan:
-    """:class:`KinkPlan` of insertions ``D (B, N)``: it depends on the insertions and the tubes
-    only, so a solve that keeps them reuses it (``equilibrium_forces(cache=...)``)."""
+KINK_DELTA = 1e-7
+"""[m] how far from a kink of ``U*(D)`` its one-sided values are taken (the error is O(delta))."""
+KINK_TOL = 1e-9
+"""[m] an insertion this close to a tube's base, transition or end at the orifice is at it."""
+
+
+def kink_mask(tubes, D: torch.Tensor, tol: float = KINK_TOL) -> torch.Tensor:
+    """``(B, N)`` bool: ``U*(D_j)`` has a kink at insertions ``D (B, N)`` [m] (a tube's base,
+    straight-to-curved transition or end at the orifice, or a moving cut meeting another
+    tube's), so that derivatives in ``D_j`` are one-sided there."""
     B, N = D.shape
     L = tubes.length.expand(B, N)
     Ls = tubes.straight.expand(B, N)
     curved = tubes.coef.abs().sum((-1, -2)).expand(B, N) > 0
     exposed = L - D > tol
-    kink = ((D <= tol) & exposed) | (((Ls - D).abs() <= tol) & curved & (L > Ls)) \
+    return ((D <= tol) & exposed) | (((Ls - D).abs() <= tol) & curved & (L > Ls)) \
         | ((L - D).abs() <= tol) | _coinciding_cuts(L, Ls, D, curved, tol)
+
+
+def _kink_plan(tubes, D: torch.Tensor, delta: float, tol: float) -> KinkPlan:
+    """:class:`KinkPlan` of insertions ``D (B, N)``: it depends on the insertions and the tubes
+    only, so a solve that keeps them reuses it (``equilibrium_forces(cache=...)``)."""
+    kink = kink_mask(tubes, D, tol)
     prev = torch.cat([torch.zeros_like(D[:, :1]), D[:, :-1]], -1)
     blocked = D - delta < prev
     idx = kink.nonzero()
@@ -388,8 +401,8 @@ def _kink_plan(tubes, D: torch.Tensor, delta: float, tol: float) -> KinkPlan:
     return KinkPlan(kink, blocked, rows_b, rows_j, sel, sj, Dn)
 
 
-def equilibrium_forces(tubes, res: ForceState, resolve, delta: float = 1e-7, tol: float = 1e-9,
-                       cache=None, partials=None):
+def equilibrium_forces(tubes, res: ForceState, resolve, delta: float = KINK_DELTA,
+                       tol: float = KINK_TOL, cache=None, partials=None):
     """Actuation forces and torques ``(B, N)`` at the equilibrium ``res``,
     with one-sided insertion forces where ``U*(D_j)`` has a kink: material of tube ``j`` changing
     kind exactly at the orifice -- its base (``D_j = 0``: the guide torsion appears), its

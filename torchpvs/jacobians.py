@@ -29,7 +29,7 @@ from dataclasses import dataclass, replace
 
 import torch
 
-from .forces import closed_form_partials
+from .forces import KINK_DELTA, closed_form_partials, kink_mask
 from .implicit import adjoint_factor, differentiable_outputs
 from .mechanics import potential, skew_vee, tip_pose
 from .sections import TubeTensors, build_layout, tube_rows
@@ -103,7 +103,53 @@ def actuator_stiffness(eq, rows=None) -> torch.Tensor:
     ``H^-1 U_qx`` from the equilibrium's adjoint
     factorization (shared with the implicit backward). Under a tip moment (non-conservative)
     through the implicit backward, in one reverse pass over the repeated batch."""
-    return _schur(eq, _rows_of(eq, rows))[0]
+    return _one_sided(eq, _rows_of(eq, rows), lambda e, r: (_schur(e, r)[0], None))[0]
+
+
+def _one_sided(eq, rows: torch.Tensor, blocks):
+    """``blocks(eq, rows) -> (K (k, 2N, 2N), J (k, 6, 2N) or None)`` of batch ``rows``,
+    one-sided where an insertion sits at a kink of ``U*(D_j)``
+    (:func:`torchpvs.forces.kink_mask`: a tube's base, straight-to-curved transition or end at
+    the orifice, or cuts of two tubes meeting). There the derivatives in ``D_j`` differ for
+    insertion and retraction, and the layout's own derivative (torch's rule for a tie in
+    ``sort``, ``clamp`` or ``minimum``) is neither. For such rows the ``D_j`` columns of ``J``
+    and the ``D_j`` row and column of ``K`` (the force ``actuation_forces`` reports there is
+    one-sided too) come from the equilibrium ``KINK_DELTA`` (1e-7 m) away on the retraction
+    side (every kinked ``D_j`` increased; the insertion side where the tube's end is at the
+    orifice and it cannot retract further), the side ``actuation_forces`` reports: an O(delta)
+    error, as for the one-sided forces. The other entries are the point's own (smooth there).
+    The side solve keeps the order and discretization."""
+    K, J = blocks(eq, rows)
+    ctx = eq.context
+    D = ctx.insertion.detach()[rows]
+    tubes = tube_rows(ctx.tubes, rows)
+    kink = kink_mask(tubes, D) & eq.converged.detach()[rows, None]
+    at = kink.any(-1).nonzero().flatten()
+    if at.numel() == 0:
+        return K, J
+    if ctx.resolver is None:
+        raise ValueError("control Jacobians: an insertion sits at a kink of U*(D) and this "
+                         "equilibrium carries no solve to take the one-sided side from")
+    L = tubes.length.expand_as(D)[at]
+    k = kink[at]
+    sign = torch.where((L - D[at]).abs() <= KINK_DELTA / 2, -1.0, 1.0).to(D.dtype)
+    Dn = D[at] + KINK_DELTA * sign * k.to(D.dtype)
+    # a base moved past the next one's would break the nesting: move them together
+    Dn = torch.cummax(Dn, -1).values
+    disc = ctx.discretization
+    opts = replace(ctx.options, order=eq.order, n_quad=disc.n_quad, n_magnus=disc.n_magnus,
+                   compute_forces=False)
+    side = ctx.resolver.at(Dn, rows[at], eq.q.detach()[rows[at]], opts)
+    Ks, Js = blocks(side, torch.arange(len(at), device=at.device))
+    cols = torch.cat([k, torch.zeros_like(k)], -1)                     # (k, 2N): the D_j
+    Ka = K[at]
+    Ka = torch.where(cols[:, :, None] | cols[:, None, :], Ks, Ka)
+    K = K.clone()
+    K[at] = Ka
+    if J is not None:
+        J = J.clone()
+        J[at] = torch.where(cols[:, None, :], Js, J[at])
+    return K, J
 
 
 def _schur(eq, rows: torch.Tensor, tip: bool = False):
@@ -197,7 +243,13 @@ def tip_jacobian(eq, rows=None) -> torch.Tensor:
 
 
 def _control_blocks(eq, rows: torch.Tensor):
-    """``(K (B, 2N, 2N), J_x (B, 6, 2N))`` of batch ``rows``."""
+    """``(K (B, 2N, 2N), J_x (B, 6, 2N))`` of batch ``rows``, one-sided at kinks
+    (:func:`_one_sided`)."""
+    return _one_sided(eq, rows, _control_blocks_here)
+
+
+def _control_blocks_here(eq, rows: torch.Tensor):
+    """``(K, J_x)`` of batch ``rows`` by the layout's own derivatives."""
     K, Z, partials = _schur(eq, rows, tip=True)
     if Z is None:   # a tip moment: through the implicit backward
         return K, _implicit_rows(eq, rows, stiffness=False, tip=True)

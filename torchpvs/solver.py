@@ -293,3 +293,11 @@ class SolutionResolver:
         """See :meth:`torchpvs.equilibrium.Resolver.again`."""
         return solve_tensors(self.scene, self.tubes, self.D, self.A, self.F, self.M, options,
                              initial, self.plan)
+
+    def at(self, insertion: torch.Tensor, rows: torch.Tensor, initial: torch.Tensor,
+           options: SolverOptions) -> Equilibrium:
+        """See :meth:`torchpvs.equilibrium.Resolver.at`."""
+        tubes = tube_rows(self.tubes, rows)
+        shared = all(t.shape[0] == 1 for t in self.tubes.tensors())
+        return solve_tensors(self.scene, tubes, insertion, self.A[rows], self.F[rows],
+                             self.M[rows], options, initial, self.plan if shared else None)
