@@ -55,6 +55,7 @@ class CTRReachEnv(gym.Env):
 
     Reward: ``"sparse"`` (default) ``-1`` per step until the measured tip is within
     ``tolerance`` (1 mm), then ``0``; ``"dense"`` ``-distance / dense_scale``, ``+1`` inside;
+    ``"shaped"`` the sparse reward minus ``shaping_weight * min(distance / dense_scale, 1)``;
     plus ``snap_penalty`` (``-60``) at a terminating snap. Episodes end at a snap
     (``snap_mode="terminate"``) or after the registered number of steps (truncation).
 

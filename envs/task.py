@@ -65,11 +65,17 @@ class ReachConfig:
     Attributes:
         control: ``"force"`` (actions are actuator forces/torques) or ``"joint"`` (actions are
             joint increments, the literature's convention).
-        reward: ``"sparse"`` (``-1`` until within tolerance, ``0`` inside) or ``"dense"``
-            (``-d / dense_scale``, ``+1`` inside the tolerance).
+        reward: ``"sparse"`` (``-1`` until within tolerance, ``0`` inside), ``"dense"``
+            (``-d / dense_scale``, ``+1`` inside the tolerance) or ``"shaped"`` (the sparse
+            reward minus ``shaping_weight * min(d / dense_scale, 1)``: a bounded pull towards
+            the goal's centre that only distinguishes distances below ``dense_scale``, so
+            that far from the goal it is the sparse reward scaled by ``1 + shaping_weight``).
         tolerance: [m] success radius (default 1 mm); change at run time with
             ``set_tolerance`` (curricula).
-        dense_scale: [m] distance normalization of the dense reward.
+        dense_scale: [m] distance normalization of the dense and shaped rewards.
+        shaping_weight: weight of the shaped reward's distance term (finite, >= 0; default
+            0.5). With it the value of never reaching is ``-(1 + shaping_weight) / (1 -
+            gamma)``: ``snap_penalty`` must lie below that for a snap not to pay.
         max_joint_step: ``(insertion [m], rotation [rad])`` per step at action ``+-1`` (joint
             control; default 1 mm and 5 deg).
         snap_mode: ``"terminate"`` (default: end the episode with ``snap_penalty`` added) or
@@ -108,6 +114,7 @@ class ReachConfig:
     reward: str = "sparse"
     tolerance: float = 1e-3
     dense_scale: float = 0.01
+    shaping_weight: float = 0.5
     max_joint_step: tuple[float, float] = (1e-3, math.radians(5.0))
     snap_mode: str = "terminate"
     snap_penalty: float = -60.0
@@ -127,8 +134,12 @@ class ReachConfig:
         self.plant  # noqa: B018 - validates the three plant fields by name
         if self.control not in ("force", "joint"):
             raise ValueError(f"control must be 'force' or 'joint', got {self.control!r}")
-        if self.reward not in ("sparse", "dense"):
-            raise ValueError(f"reward must be 'sparse' or 'dense', got {self.reward!r}")
+        if self.reward not in ("sparse", "dense", "shaped"):
+            raise ValueError(f"reward must be 'sparse', 'dense' or 'shaped', got "
+                             f"{self.reward!r}")
+        if not (_real(self.shaping_weight) and self.shaping_weight >= 0):
+            raise ValueError(f"shaping_weight must be a finite number >= 0, got "
+                             f"{self.shaping_weight!r}")
         if self.snap_mode not in ("terminate", "continue"):
             raise ValueError(f"snap_mode must be 'terminate' or 'continue', got "
                              f"{self.snap_mode!r}")
@@ -247,7 +258,8 @@ class RewardTerms(NamedTuple):
 
     Attributes:
         distance: the goal term: ``"sparse"`` ``-1`` outside the tolerance, ``0`` inside;
-            ``"dense"`` ``-d / dense_scale``, plus ``1`` inside (``d`` [m] the distance of the
+            ``"dense"`` ``-d / dense_scale``, plus ``1`` inside; ``"shaped"`` the sparse term
+            minus ``shaping_weight * min(d / dense_scale, 1)`` (``d`` [m] the distance of the
             goals' positions).
         snap: ``snap_penalty`` where the snap flag is set (the achieved goal's 4th entry or
             ``snapped``), else ``0``.
@@ -258,14 +270,19 @@ class RewardTerms(NamedTuple):
 
 
 def reward_terms(achieved_goal, desired_goal, tolerance: float, kind: str,
-                 dense_scale: float, snapped=None, snap_penalty: float = 0.0
-                 ) -> tuple[np.ndarray, RewardTerms]:
+                 dense_scale: float, snapped=None, snap_penalty: float = 0.0,
+                 shaping_weight: float = 0.5) -> tuple[np.ndarray, RewardTerms]:
     """:func:`compute_reward` and its parts: ``(reward (...,) float32, RewardTerms)``."""
     ag = np.asarray(achieved_goal, np.float64)
     dg = np.asarray(desired_goal, np.float64)
     d = np.linalg.norm(ag[..., :3] - dg[..., :3], axis=-1)
     inside = d <= tolerance
-    r = -(~inside).astype(np.float64) if kind == "sparse" else -d / dense_scale + inside
+    if kind == "dense":
+        r = -d / dense_scale + inside
+    else:
+        r = -(~inside).astype(np.float64)
+        if kind == "shaped":
+            r = r - shaping_weight * np.minimum(d / dense_scale, 1.0)
     flag = ag[..., 3] > 0.5 if ag.shape[-1] == 4 else np.zeros(d.shape, dtype=bool)
     if snapped is not None:
         flag = flag | np.asarray(snapped, dtype=bool)
@@ -274,7 +291,8 @@ def reward_terms(achieved_goal, desired_goal, tolerance: float, kind: str,
 
 
 def compute_reward(achieved_goal, desired_goal, tolerance: float, kind: str,
-                   dense_scale: float, snapped=None, snap_penalty: float = 0.0) -> np.ndarray:
+                   dense_scale: float, snapped=None, snap_penalty: float = 0.0,
+                   shaping_weight: float = 0.5) -> np.ndarray:
     """Vectorized reward over the last axis -> ``(...,)`` float32.
 
     Goals are ``(..., 3)`` positions [m] or the environments' ``(..., 4)`` goals whose 4th
@@ -282,7 +300,7 @@ def compute_reward(achieved_goal, desired_goal, tolerance: float, kind: str,
     achieved flag is set or ``snapped`` (e.g. from ``info``) is true. Its parts:
     :func:`reward_terms`."""
     return reward_terms(achieved_goal, desired_goal, tolerance, kind, dense_scale, snapped,
-                        snap_penalty)[0]
+                        snap_penalty, shaping_weight)[0]
 
 
 def info_field(info, key: str, shape) -> np.ndarray | None:
@@ -304,7 +322,7 @@ def her_reward(task: ReachBatch, achieved_goal, desired_goal, info) -> np.ndarra
     snapped = info_field(info, "snap_terminated", np.shape(achieved_goal)[:-1])
     c = task.config
     return compute_reward(achieved_goal, desired_goal, task.tolerance, c.reward, c.dense_scale,
-                          snapped, c.snap_penalty)
+                          snapped, c.snap_penalty, c.shaping_weight)
 
 
 class ReachBatch:
@@ -687,7 +705,8 @@ class ReachBatch:
         ``snap_term`` (a terminating snap this step)."""
         c = self.config
         return reward_terms(self.measured_tip.astype(np.float32), self.goal.astype(np.float32),
-                            self.tolerance, c.reward, c.dense_scale, snap_term, c.snap_penalty)
+                            self.tolerance, c.reward, c.dense_scale, snap_term, c.snap_penalty,
+                            c.shaping_weight)
 
     # -- observations -------------------------------------------------------------------------
     def observations(self) -> dict[str, np.ndarray]:

@@ -122,7 +122,7 @@ def test_terminate_stays_the_default():
 FIG3_COMBINATIONS = [(control, compensation, reward, snap_mode)
                      for control, compensation in [("force", False), ("force", True),
                                                    ("joint", False)]
-                     for reward in ("sparse", "dense")
+                     for reward in ("sparse", "dense", "shaped")
                      for snap_mode in ("terminate", "continue")]
 
 
@@ -189,3 +189,28 @@ def test_info_carries_the_reward_terms_and_they_sum_to_the_reward():
     assert info["snap_terminated"]
     assert info["reward_snap"] == env.config.snap_penalty and info["reward_distance"] == -1.0
     assert r == np.float32(info["reward_distance"] + info["reward_snap"])
+
+
+def test_shaped_reward_is_the_sparse_reward_plus_a_bounded_pull():
+    """``reward="shaped"``: -1 outside the tolerance, 0 inside, minus ``shaping_weight *
+    min(d / dense_scale, 1)``. Values by hand at 1 mm tolerance, 3 mm scale, weight 0.5:
+    0 mm -> 0; 0.6 mm -> -0.1; 1.5 mm -> -1.25; 3 mm and 50 mm -> -1.5 (the cap: far away it
+    is the sparse reward scaled by 1.5)."""
+    env = CTRReachEnv(compensation=True, reward="shaped", dense_scale=0.003)
+    d = np.array([0.0, 0.6e-3, 1.5e-3, 3e-3, 50e-3])
+    goal = np.array([0.01, -0.02, 0.1, 0.0])
+    ag = np.tile(goal, (5, 1))
+    ag[:, 0] += d
+    dg = np.tile(goal, (5, 1))
+    np.testing.assert_allclose(env.compute_reward(ag, dg, {}), [0.0, -0.1, -1.25, -1.5, -1.5],
+                               rtol=0, atol=1e-6)
+    heavier = CTRReachEnv(compensation=True, reward="shaped", dense_scale=0.003,
+                          shaping_weight=2.0)
+    np.testing.assert_allclose(heavier.compute_reward(ag, dg, {}), [0, -0.4, -2.0, -3.0, -3.0],
+                               rtol=0, atol=1e-6)
+
+
+@pytest.mark.parametrize("bad", [-0.1, float("nan"), float("inf"), "0.5"])
+def test_shaping_weight_is_checked_by_name(bad):
+    with pytest.raises(ValueError, match="shaping_weight"):
+        envs.ReachConfig(reward="shaped", shaping_weight=bad)
