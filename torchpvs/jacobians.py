@@ -112,44 +112,47 @@ def _one_sided(eq, rows: torch.Tensor, blocks):
     (:func:`torchpvs.forces.kink_mask`: a tube's base, straight-to-curved transition or end at
     the orifice, or cuts of two tubes meeting). There the derivatives in ``D_j`` differ for
     insertion and retraction, and the layout's own derivative (torch's rule for a tie in
-    ``sort``, ``clamp`` or ``minimum``) is neither. For such rows the ``D_j`` columns of ``J``
-    and the ``D_j`` row and column of ``K`` (the force ``actuation_forces`` reports there is
-    one-sided too) come from the equilibrium ``KINK_DELTA`` (1e-7 m) away on the retraction
-    side (every kinked ``D_j`` increased; the insertion side where the tube's end is at the
-    orifice and it cannot retract further), the side ``actuation_forces`` reports: an O(delta)
-    error, as for the one-sided forces. The other entries are the point's own (smooth there).
-    The side solve keeps the order and discretization."""
-    K, J = blocks(eq, rows)
+    ``sort``, ``clamp`` or ``minimum``) is neither. Such rows take their blocks from the
+    equilibrium ``KINK_DELTA`` (1e-7 m) away on the retraction side (every kinked ``D_j``
+    increased; the insertion side where the tube's end is at the orifice and it cannot retract
+    further), the side ``actuation_forces`` reports. Every entry of such a row is then off by
+    O(delta), as the one-sided forces are (1e-7 to 8e-6 relative in the entries that are smooth
+    at the kink, measured on the Fig. 3 robot): the price of one side solve instead of two
+    block evaluations, which cost five times as much. The side solve keeps the order and
+    discretization."""
     ctx = eq.context
     D = ctx.insertion.detach()[rows]
     tubes = tube_rows(ctx.tubes, rows)
     kink = kink_mask(tubes, D) & eq.converged.detach()[rows, None]
     at = kink.any(-1).nonzero().flatten()
     if at.numel() == 0:
-        return K, J
+        return blocks(eq, rows)
     if ctx.resolver is None:
         raise ValueError("control Jacobians: an insertion sits at a kink of U*(D) and this "
                          "equilibrium carries no solve to take the one-sided side from")
+    smooth = (~kink.any(-1)).nonzero().flatten()
     L = tubes.length.expand_as(D)[at]
-    k = kink[at]
     sign = torch.where((L - D[at]).abs() <= KINK_DELTA / 2, -1.0, 1.0).to(D.dtype)
-    Dn = D[at] + KINK_DELTA * sign * k.to(D.dtype)
+    Dn = D[at] + KINK_DELTA * sign * kink[at].to(D.dtype)
     # a base moved past the next one's would break the nesting: move them together
     Dn = torch.cummax(Dn, -1).values
     disc = ctx.discretization
     opts = replace(ctx.options, order=eq.order, n_quad=disc.n_quad, n_magnus=disc.n_magnus,
                    compute_forces=False)
     side = ctx.resolver.at(Dn, rows[at], eq.q.detach()[rows[at]], opts)
-    Ks, Js = blocks(side, torch.arange(len(at), device=at.device))
-    cols = torch.cat([k, torch.zeros_like(k)], -1)                     # (k, 2N): the D_j
-    Ka = K[at]
-    Ka = torch.where(cols[:, :, None] | cols[:, None, :], Ks, Ka)
-    K = K.clone()
-    K[at] = Ka
-    if J is not None:
-        J = J.clone()
-        J[at] = torch.where(cols[:, None, :], Js, J[at])
-    return K, J
+    parts = blocks(side, torch.arange(len(at), device=at.device))
+    if smooth.numel() == 0:
+        return parts
+    rest = blocks(eq, rows[smooth])
+    out = []
+    for p, r in zip(parts, rest, strict=True):
+        if p is None:
+            out.append(None)
+            continue
+        full = p.new_empty((len(rows), *p.shape[1:]))
+        full[at], full[smooth] = p, r
+        out.append(full)
+    return tuple(out)
 
 
 def _schur(eq, rows: torch.Tensor, tip: bool = False):
