@@ -445,8 +445,9 @@ def peer_fd_jacobian(peer: Peer, alpha: np.ndarray, beta: np.ndarray, base: dict
     """The peer's actuator tip-position Jacobian by finite differences of its own solves
     ``(m, 3, 2N)`` (peer columns: alpha, then Beta, innermost first), warm from ``base``.
     Rotations: central differences. Insertions: second-order one-sided differences towards
-    larger Beta (advancing the tube): at the Fig. 3 insertion the outer tube's curved part
-    starts exactly at the orifice and the tip is not differentiable in that D (a kink)."""
+    smaller Beta (retracting the tube, the side torchpvs reports at a kink): at the Fig. 3
+    insertion the outer tube's curved part starts exactly at the orifice and the tip is not
+    differentiable in that D (a kink)."""
     m, N = alpha.shape
     rows_a, rows_b, rows_p = [], [], []
     for j in range(N):
@@ -455,7 +456,7 @@ def peer_fd_jacobian(peer: Peer, alpha: np.ndarray, beta: np.ndarray, base: dict
             a[:, j] += d
             rows_a.append(a), rows_b.append(beta), rows_p.append(base["psi"])
     for j in range(N):
-        for d in (h_ins, 2 * h_ins):
+        for d in (-h_ins, -2 * h_ins):
             b = beta.copy()
             b[:, j] += d
             rows_a.append(alpha), rows_b.append(b), rows_p.append(base["psi"])
@@ -468,7 +469,8 @@ def peer_fd_jacobian(peer: Peer, alpha: np.ndarray, beta: np.ndarray, base: dict
     J = np.zeros((m, 3, 2 * N))
     for j in range(N):
         J[:, :, j] = (tips[2 * j] - tips[2 * j + 1]) / (2 * h_rot)
-        J[:, :, N + j] = (-3 * f0 + 4 * tips[2 * N + 2 * j] - tips[2 * N + 2 * j + 1]) / (2 * h_ins)
+        f1, f2 = tips[2 * N + 2 * j], tips[2 * N + 2 * j + 1]
+        J[:, :, N + j] = (-3 * f0 + 4 * f1 - f2) / (-2 * h_ins)
     return J
 
 
@@ -514,7 +516,8 @@ def _print(r: dict) -> None:
               f"{r['jacobian_diff_peer_peerfd'][k]:>11.1e}")
     for j in r["insertion_kinks"]:
         print(f"  D_{j}: tube {j}'s curved part starts exactly at the orifice, where the tip has a "
-              f"kink in D_{j} (one-sided derivatives differ); the peer FD is the advancing side")
+              f"kink in D_{j} (one-sided derivatives differ); torchpvs reports the retracting "
+              f"side, the peer FD is taken on it")
         sd = r[f"torchpvs_kink_D{j}_closed_form_vs_fd"]
         print(f"  D_{j}: torchpvs closed form vs its own one-sided differences (accuracy 1e-9): "
               f"advancing {sd['advancing']:.1e}, retracting {sd['retracting']:.1e} m/m")
