@@ -123,7 +123,12 @@ def _one_sided(eq, rows: torch.Tensor, blocks):
     ctx = eq.context
     D = ctx.insertion.detach()[rows]
     tubes = tube_rows(ctx.tubes, rows)
-    kink = kink_mask(tubes, D) & eq.converged.detach()[rows, None]
+    opts = ctx.options
+    if opts.compute_forces and opts.force_model == "energy":
+        kink = eq.force_kink[rows]          # the solve's own analysis (the same mask)
+    else:
+        kink = kink_mask(tubes, D)
+    kink = kink & eq.converged.detach()[rows, None]
     at = kink.any(-1).nonzero().flatten()
     if at.numel() == 0:
         return blocks(eq, rows)
@@ -137,7 +142,7 @@ def _one_sided(eq, rows: torch.Tensor, blocks):
     # a base moved past the next one's would break the nesting: move them together
     Dn = torch.cummax(Dn, -1).values
     disc = ctx.discretization
-    opts = replace(ctx.options, order=eq.order, n_quad=disc.n_quad, n_magnus=disc.n_magnus,
+    opts = replace(opts, order=eq.order, n_quad=disc.n_quad, n_magnus=disc.n_magnus,
                    compute_forces=False)
     side = ctx.resolver.at(Dn, rows[at], eq.q.detach()[rows[at]], opts)
     parts = blocks(side, torch.arange(len(at), device=at.device))
