@@ -69,9 +69,10 @@ def _adjoint_rows(eq, rows: torch.Tensor):
     return tuple(t[rows] for t in factors)
 
 
-def _replicated(eq, m: int, rows: torch.Tensor):
+def _replicated(eq, m: int, rows: torch.Tensor, D=None):
     """The equilibrium's coordinates, inputs and implicit context for batch ``rows``, every
-    element repeated ``m`` times (rows ``r * m + i``), without the adjoint factors.
+    element repeated ``m`` times (rows ``r * m + i``), without the adjoint factors; with the
+    insertions ``D (len(rows), N)`` instead of the equilibrium's where given (a kink's side).
 
     Jacobian rows by ONE reverse pass: replica ``i`` of element ``r`` back-propagates only its
     output ``i`` (elements are independent), instead of ``m`` reverse passes over the batch. The
@@ -81,6 +82,8 @@ def _replicated(eq, m: int, rows: torch.Tensor):
     idx = rows.repeat_interleave(m)
     rep = ctx.implicit.rows(idx)
     inputs = tuple(t.detach()[idx] for t in ctx.actuation_and_load)
+    if D is not None:
+        inputs = (D.detach().repeat_interleave(m, 0), *inputs[1:])
     return eq.q.detach()[idx], rep, inputs, tube_rows(ctx.tubes, idx)
 
 
@@ -103,27 +106,35 @@ def actuator_stiffness(eq, rows=None) -> torch.Tensor:
     ``H^-1 U_qx`` from the equilibrium's adjoint
     factorization (shared with the implicit backward). Under a tip moment (non-conservative)
     through the implicit backward, in one reverse pass over the repeated batch."""
-    return _one_sided(eq, _rows_of(eq, rows), lambda e, r: (_schur(e, r)[0], None))[0]
+    return _one_sided(eq, _rows_of(eq, rows), _stiffness_block)[0]
+
+
+def _stiffness_block(eq, rows: torch.Tensor, D=None):
+    """``(K, None, qmask)``: :func:`_schur`'s stiffness in :func:`_one_sided`'s protocol."""
+    K, _, _, qm = _schur(eq, rows, D=D)
+    return K, None, qm
 
 
 def _one_sided(eq, rows: torch.Tensor, blocks):
-    """``blocks(eq, rows) -> (K (k, 2N, 2N), J (k, 6, 2N) or None)`` of batch ``rows``,
-    one-sided where an insertion sits at a kink of ``U*(D_j)``
-    (:func:`torchpvs.forces.kink_mask`: a tube's base, straight-to-curved transition or end at
-    the orifice, or cuts of two tubes meeting). There the derivatives in ``D_j`` differ for
-    insertion and retraction, and the layout's own derivative (torch's rule for a tie in
-    ``sort``, ``clamp`` or ``minimum``) is neither. Such rows take their blocks from the
-    equilibrium ``KINK_DELTA`` (1e-7 m) away on the retraction side (every kinked ``D_j``
-    increased; the insertion side where the tube's end is at the orifice and it cannot retract
-    further), the side ``actuation_forces`` reports. Every entry of such a row is then off by
-    O(delta), as the one-sided forces are (1e-7 to 8e-6 relative in the entries that are smooth
-    at the kink, measured on the Fig. 3 robot): the price of one side solve instead of two
-    block evaluations, which cost five times as much. The side solve keeps the order and
-    discretization."""
+    """``(K (k, 2N, 2N), J (k, 6, 2N) or None)`` of batch ``rows`` from ``blocks(eq, rows, D)
+    -> (K, J or None, qmask or None)``, one-sided where an insertion sits at a kink of
+    ``U*(D_j)`` (:func:`torchpvs.forces.kink_mask`: a tube's base, straight-to-curved
+    transition or end at the orifice, or cuts of two tubes meeting). There the derivatives in
+    ``D_j`` differ for insertion and retraction, and the layout's own derivative (torch's rule
+    for a tie in ``sort``, ``clamp`` or ``minimum``) is neither. Such rows are evaluated
+    ``KINK_DELTA`` (1e-7 m) away on the retraction side (every kinked ``D_j`` increased; the
+    insertion side where the tube's end is at the orifice and it cannot retract further), the
+    side ``actuation_forces`` reports: the partials at the side's insertions with this
+    equilibrium's ``q`` and factorization (no solve) where the sections there have the same
+    coordinates (``blocks`` reports the layout's ``qmask``); where a coordinate appears (a base
+    leaving the orifice) or under a tip moment (the implicit-backward path), at the side's own
+    equilibrium (one solve). Every entry of such a row is then off by O(delta), as the
+    one-sided forces are: 1e-7 to 8e-6 relative in the entries that are smooth at the kink
+    (Fig. 3 robot)."""
     ctx = eq.context
+    opts = ctx.options
     D = ctx.insertion.detach()[rows]
     tubes = tube_rows(ctx.tubes, rows)
-    opts = ctx.options
     if opts.compute_forces and opts.force_model == "energy":
         kink = eq.force_kink[rows]          # the solve's own analysis (the same mask)
     else:
@@ -131,59 +142,70 @@ def _one_sided(eq, rows: torch.Tensor, blocks):
     kink = kink & eq.converged.detach()[rows, None]
     at = kink.any(-1).nonzero().flatten()
     if at.numel() == 0:
-        return blocks(eq, rows)
-    if ctx.resolver is None:
-        raise ValueError("control Jacobians: an insertion sits at a kink of U*(D) and this "
-                         "equilibrium carries no solve to take the one-sided side from")
-    smooth = (~kink.any(-1)).nonzero().flatten()
+        return blocks(eq, rows, None)[:2]
     L = tubes.length.expand_as(D)[at]
     sign = torch.where((L - D[at]).abs() <= KINK_DELTA / 2, -1.0, 1.0).to(D.dtype)
     Dn = D[at] + KINK_DELTA * sign * kink[at].to(D.dtype)
     # a base moved past the next one's would break the nesting: move them together
     Dn = torch.cummax(Dn, -1).values
-    disc = ctx.discretization
-    opts = replace(opts, order=eq.order, n_quad=disc.n_quad, n_magnus=disc.n_magnus,
-                   compute_forces=False)
-    side = ctx.resolver.at(Dn, rows[at], eq.q.detach()[rows[at]], opts)
-    parts = blocks(side, torch.arange(len(at), device=at.device))
-    if smooth.numel() == 0:
-        return parts
-    rest = blocks(eq, rows[smooth])
-    out = []
-    for p, r in zip(parts, rest, strict=True):
-        if p is None:
-            out.append(None)
-            continue
-        full = p.new_empty((len(rows), *p.shape[1:]))
-        full[at], full[smooth] = p, r
-        out.append(full)
+    info = ctx.implicit
+    r_at = rows[at]
+    groups = []
+    moved = torch.ones(len(at), dtype=torch.bool, device=at.device)
+    if not info.has_moment:
+        K, J, qm = blocks(eq, r_at, Dn)
+        moved = (qm != info.qmask[r_at]).any(-1)
+        groups.append((at, (K, J)))
+    if bool(moved.any()):
+        if ctx.resolver is None:
+            raise ValueError("control Jacobians: an insertion sits at a kink of U*(D) and this "
+                             "equilibrium carries no solve to take the one-sided side from")
+        disc = ctx.discretization
+        side = ctx.resolver.at(Dn[moved], r_at[moved], eq.q.detach()[r_at[moved]],
+                               replace(opts, order=eq.order, n_quad=disc.n_quad,
+                                       n_magnus=disc.n_magnus, compute_forces=False))
+        k = int(moved.sum())
+        groups.append((at[moved], blocks(side, torch.arange(k, device=at.device), None)[:2]))
+    if len(at) < len(rows):
+        smooth = (~kink.any(-1)).nonzero().flatten()
+        groups.insert(0, (smooth, blocks(eq, rows[smooth], None)[:2]))
+    out = [None if p is None else p.new_empty((len(rows), *p.shape[1:]))
+           for p in groups[0][1]]
+    for idx, parts in groups:       # later groups overwrite: the side solves come last
+        for full, p in zip(out, parts, strict=True):
+            if full is not None:
+                full[idx] = p
     return tuple(out)
 
 
-def _schur(eq, rows: torch.Tensor, tip: bool = False):
-    """``(K (B, 2N, 2N), Z (B, nq, 2N) or None, tip partials or None)``: the actuator stiffness
+def _schur(eq, rows: torch.Tensor, tip: bool = False, D=None):
+    """``(K (B, 2N, 2N), Z (B, nq, 2N) or None, tip partials or None, qmask (B, nq) or
+    None)``: the actuator stiffness
     of batch ``rows`` and, for a conservative load, ``Z = H^-1 U_qx`` (so ``dq*/dx = -Z``; zero
     on the inactive coordinates). ``Z`` is ``None`` under a tip moment (the stiffness then comes
     from the implicit backward). With ``tip``, the tip partials ``(P_q, P_x)`` of
     :func:`_tip_partials` come from the stiffness's own reverse pass where its rotation rows are
-    read off ``H`` (one pass instead of two), else ``None``."""
+    read off ``H`` (one pass instead of two), else ``None``. ``D (B, N)``: the partials at
+    these insertions instead of the equilibrium's (at fixed ``q`` and ``H``: a kink's side,
+    :func:`_one_sided`); ``qmask`` is then the active coordinates of the layout there (where
+    they differ from the equilibrium's, the result is not that side's), else ``None``."""
     q0 = eq.q
     B, m = len(rows), 2 * eq.context.insertion.shape[1]
     if B == 0:
         return (torch.zeros(0, m, m, dtype=q0.dtype, device=q0.device),
-                torch.zeros(0, q0.shape[-1], m, dtype=q0.dtype, device=q0.device), None)
+                torch.zeros(0, q0.shape[-1], m, dtype=q0.dtype, device=q0.device), None, None)
     ctx = eq.context
     if ctx.implicit.has_moment:
-        return _implicit_rows(eq, rows, stiffness=True, tip=False), None, None
+        return _implicit_rows(eq, rows, stiffness=True, tip=False), None, None, None
     lu, piv, scale = _adjoint_rows(eq, rows)
     qmask = ctx.implicit.qmask[rows]                                      # (B, nq)
     N = m // 2
-    D0 = ctx.insertion.detach()[rows]
+    D0 = ctx.insertion.detach()[rows] if D is None else D
     partials = None
     if bool((qmask[:, :N] > 0).all()) and bool((D0 > 0).all()):
-        Uxq, Uxx, partials = _rotation_rows_from_hessian(eq, rows, D0, tip)
+        Uxq, Uxx, partials, lay_mask = _rotation_rows_from_hessian(eq, rows, D0, tip)
     else:
-        q, info, (D, A, F, M), tubes = _replicated(eq, m, rows)
+        q, info, (D, A, F, M), tubes = _replicated(eq, m, rows, D)
         D.requires_grad_(True)
         A.requires_grad_(True)
         pick = torch.eye(m, dtype=q.dtype, device=q.device).repeat(B, 1)    # (B m, 2N)
@@ -194,10 +216,11 @@ def _schur(eq, rows: torch.Tensor, tip: bool = False):
             tau = torch.cat(torch.autograd.grad(U.sum(), (D, A), create_graph=True), -1)
             Uxq, UxD, UxA = torch.autograd.grad((tau * pick).sum(), (q, D, A))
         Uxx = torch.cat([UxD, UxA], -1).reshape(B, m, m)
+        lay_mask = lay.qmask.reshape(B, m, -1)[:, 0]
     Uqx = (Uxq.reshape(B, m, -1) * qmask[:, None]).transpose(1, 2)          # (B, nq, 2N)
     Z = _tangent_solve((lu, piv, scale), Uqx) * qmask[..., None]
     K = Uxx - Uqx.transpose(1, 2) @ Z
-    return 0.5 * (K + K.transpose(1, 2)), Z, partials
+    return 0.5 * (K + K.transpose(1, 2)), Z, partials, (None if D is None else lay_mask)
 
 
 def _tangent_solve(factors, rhs: torch.Tensor) -> torch.Tensor:
@@ -208,12 +231,12 @@ def _tangent_solve(factors, rhs: torch.Tensor) -> torch.Tensor:
     return torch.linalg.lu_solve(lu, piv, rhs / s, adjoint=True) / s
 
 
-def _tip_partials(eq, rows: torch.Tensor):
+def _tip_partials(eq, rows: torch.Tensor, D=None):
     """``(P_q (B, 6, nq), P_x (B, 6, 2N))``: the tip twist (position [m], spatial rotation
     [rad]) per coordinate and per actuator at fixed ``q``, zero on the inactive coordinates —
     one reverse pass over the batch repeated 6 times (:func:`_replicated`)."""
     B = len(rows)
-    q, info, (D, A, F, M), tubes = _replicated(eq, 6, rows)
+    q, info, (D, A, F, M), tubes = _replicated(eq, 6, rows, D)
     q, D, A = (t.requires_grad_(True) for t in (q, D, A))
     pick = torch.eye(6, dtype=q.dtype, device=q.device).repeat(B, 1)        # (B 6, 6)
     with torch.enable_grad():
@@ -256,13 +279,14 @@ def _control_blocks(eq, rows: torch.Tensor):
     return _one_sided(eq, rows, _control_blocks_here)
 
 
-def _control_blocks_here(eq, rows: torch.Tensor):
-    """``(K, J_x)`` of batch ``rows`` by the layout's own derivatives."""
-    K, Z, partials = _schur(eq, rows, tip=True)
+def _control_blocks_here(eq, rows: torch.Tensor, D=None):
+    """``(K, J_x, qmask)`` of batch ``rows`` by the layout's own derivatives (at insertions
+    ``D`` where given, see :func:`_schur`)."""
+    K, Z, partials, qm = _schur(eq, rows, tip=True, D=D)
     if Z is None:   # a tip moment: through the implicit backward
-        return K, _implicit_rows(eq, rows, stiffness=False, tip=True)
-    Pq, Px = partials if partials is not None else _tip_partials(eq, rows)
-    return K, Px - Pq @ Z
+        return K, _implicit_rows(eq, rows, stiffness=False, tip=True), qm
+    Pq, Px = partials if partials is not None else _tip_partials(eq, rows, D)
+    return K, Px - Pq @ Z, qm
 
 
 def _implicit_rows(eq, rows: torch.Tensor, *, stiffness: bool, tip: bool) -> torch.Tensor:
@@ -289,7 +313,8 @@ def _implicit_rows(eq, rows: torch.Tensor, *, stiffness: bool, tip: bool) -> tor
 
 
 def _rotation_rows_from_hessian(eq, rows, D0, tip: bool = False):
-    """``(U_xq (B, 2N, nq), U_xx (B, 2N, 2N), tip partials or None)`` with the insertion rows
+    """``(U_xq (B, 2N, nq), U_xx (B, 2N, 2N), tip partials or None, the layout's qmask
+    (B, nq))`` with the insertion rows
     by one double-backward pass over the batch repeated ``N`` times (not ``2N``) and the
     rotation rows read off the equilibrium's Hessian: the potential depends on ``alpha_j`` and
     the guide twist ``w_j`` only through ``alpha_j + D_j w_j`` (plus the guide's
@@ -302,7 +327,7 @@ def _rotation_rows_from_hessian(eq, rows, D0, tip: bool = False):
     whole control step (the op count, not the flops, bounds it at small batches)."""
     B, N = D0.shape
     m = N + 6 * tip
-    q, info, (D, A, F, M), tubes = _replicated(eq, m, rows)
+    q, info, (D, A, F, M), tubes = _replicated(eq, m, rows, D0)
     pick = torch.eye(m, dtype=q.dtype, device=q.device).repeat(B, 1)        # (B m, m)
     D, A, q = (t.requires_grad_(True) for t in (D, A, q))
     with torch.enable_grad():
@@ -329,7 +354,7 @@ def _rotation_rows_from_hessian(eq, rows, D0, tip: bool = False):
     Uxq = torch.cat([UDq, UAq], 1)
     Uxx = torch.cat([torch.cat([UDD, UDA], -1),
                      torch.cat([UDA.transpose(1, 2), UAA], -1)], 1)
-    return Uxq, Uxx, partials
+    return Uxq, Uxx, partials, lay.qmask.reshape(B, m, -1)[:, 0]
 
 
 def control_jacobians(eq, *, compliance: bool = True,

@@ -297,7 +297,7 @@ class SolutionResolver:
     def at(self, insertion: torch.Tensor, rows: torch.Tensor, initial: torch.Tensor,
            options: SolverOptions) -> Equilibrium:
         """See :meth:`torchpvs.equilibrium.Resolver.at`."""
-        tubes = tube_rows(self.tubes, rows)
-        shared = all(t.shape[0] == 1 for t in self.tubes.tensors())
-        return solve_tensors(self.scene, tubes, insertion, self.A[rows], self.F[rows],
-                             self.M[rows], options, initial, self.plan if shared else None)
+        # a private plan: the side's insertions must not evict this solve's layout from the
+        # shared plan (the next control step at these insertions would rebuild it)
+        return solve_tensors(self.scene, tube_rows(self.tubes, rows), insertion, self.A[rows],
+                             self.F[rows], self.M[rows], options, initial, None)
