@@ -68,6 +68,8 @@ def test_jacobians_match_finite_differences(load):
     [0.09, 0.2185, 0.3, 1.0],
     # the outer tube's base at the orifice (it cannot insert further)
     [0.0, 0.2085, 0.1, 1.2],
+    # the scene's state under a dead tip force and moment (the implicit-backward path)
+    [0.0935, 0.2085, 0.0, 1.3962634015954636, "loaded"],
 ])
 def test_jacobians_at_a_kink_are_the_retraction_sides(x):
     """Where an insertion sits at a kink of U*(D_j), the derivatives in D_j are one-sided: the
@@ -77,16 +79,21 @@ def test_jacobians_at_a_kink_are_the_retraction_sides(x):
     side (4e-2 and 5.7e-1 off a column of ~0.57 at the scene's state)."""
     from torchpvs.jacobians import actuator_stiffness, tip_jacobian
 
-    x = torch.tensor(x, dtype=torch.float64)
+    loaded = x[-1] == "loaded"
+    x = torch.tensor(x[:4], dtype=torch.float64)
+    F = torch.tensor([0.02, 0.0, -0.01] if loaded else [0.0] * 3, dtype=torch.float64)
+    M = torch.tensor([0.0, 1e-3, 0.0] if loaded else [0.0] * 3, dtype=torch.float64)
     opts = tp.SolverOptions(accuracy=1e-9, time_limit=None)
-    eq = tp.solve(SCENE, insertion=x[:2], rotation=x[2:], options=opts)
+    eq = tp.solve(SCENE, insertion=x[:2], rotation=x[2:], tip_force=F, tip_moment=M,
+                  options=opts)
     j = int(eq.force_kink[0].nonzero()[0, 0])
     assert bool(eq.force_kink[0, j])
     h = 1e-6
     Dn = x[:2].repeat(2, 1)
     Dn[0, j] += h
     Dn[1, j] += 2 * h
-    ex = tp.solve(SCENE, insertion=Dn, rotation=x[2:].expand(2, 2), options=opts)
+    ex = tp.solve(SCENE, insertion=Dn, rotation=x[2:].expand(2, 2), tip_force=F, tip_moment=M,
+                  options=opts)
     tip_fd = (-3 * eq.tip_position[0] + 4 * ex.tip_position[0] - ex.tip_position[1]) / (2 * h)
     # the force at the kink is itself a one-sided estimate (O(1e-7 m) away): the stiffness
     # column from the two solves on the smooth side (first order, O(h))
@@ -107,7 +114,8 @@ def test_jacobians_at_a_kink_are_the_retraction_sides(x):
         return
     other = x[:2].clone()
     other[j] -= h
-    ins = tp.solve(SCENE, insertion=other, rotation=x[2:], options=opts)
+    ins = tp.solve(SCENE, insertion=other, rotation=x[2:], tip_force=F, tip_moment=M,
+                   options=opts)
     ins_fd = (eq.tip_position[0] - ins.tip_position[0]) / h
     assert (ins_fd - tip_fd).abs().max() >= 0.1 * tip_fd.abs().max()
 
