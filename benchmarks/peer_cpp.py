@@ -68,8 +68,9 @@ peer's own solves. Known findings on the Fig. 3 robot: the rotation columns agre
 library's insertion columns disagree with its own finite differences (``integrate_impl`` skips
 the transition at the innermost tube's base -- its own test compensates for that term -- and
 with a near-step smoothing the precurvature-ramp terms are wrong too); and at D_1 = the outer
-tube's straight length the tip has a kink in D_1, where torchpvs's closed form matches neither
-one-sided difference (printed). Run on an idle machine.
+tube's straight length the tip has a kink in D_1: torchpvs reports the retracting side there
+(its closed form against both one-sided differences is printed), and the peer's differences
+are taken on that side. Run on an idle machine.
 """
 
 from __future__ import annotations
