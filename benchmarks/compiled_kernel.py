@@ -1,15 +1,19 @@
 """The compiled kernel against the eager one, side by side in one process.
 
-    python benchmarks/compiled_kernel.py [--robots fig3 three_tube] [--configs 32] [--repeat 3]
-                                         [--env-steps 20] [--first-use] [--json out.json]
+    python benchmarks/compiled_kernel.py [--robots fig3 three_tube fig3_loaded] [--configs 32]
+                                         [--repeat 3] [--env-steps 20] [--first-use]
+                                         [--json out.json]
 
-Per robot (the paper's Fig. 3 scene and the three-tube preset), ``--configs`` configurations
+Per robot (the paper's Fig. 3 scene, the three-tube preset, and ``fig3_loaded``: the Fig. 3 scene
+under a dead tip force of 0.3 N, the load the robust environment's plants carry at most),
+``--configs`` configurations
 (the last tube's rotation over [0, 250] deg), one torch thread, default options except the
 kernel (``SolverOptions(kernel="newton")``, the eager reference, against ``"compiled"``):
 
 * B = 1 warm (each configuration from the equilibrium 1 deg away: a control step) and cold;
 * B = 64 and B = 1024 (the configurations tiled), warm and cold, per solve;
-* the force environment at B = 64 (robot-steps/s, random actions).
+* the force environment at B = 64 and the robust one (``CTRReachForceRobust-v0``: every plant
+  carries a tip force) at B = 16 (robot-steps/s, random actions).
 
 Rounds alternate the kernels (eager, compiled, eager, ...) and each figure is the best of
 ``--repeat``: ratios are measured side by side. Printed: ms per solve for both, their ratio,
@@ -49,8 +53,17 @@ def _configs(scene, n: int, B: int):
     return ins.contiguous(), rot
 
 
+TIP_FORCE = [0.2, -0.2, 0.1]      # [N], 0.3 N
+
+
+def _scene(name: str):
+    if name == "fig3_loaded":
+        return bench_scene("fig3").with_load(tip_force=TIP_FORCE)
+    return bench_scene(name)
+
+
 def bench_robot(name: str, configs: int, repeat: int) -> dict:
-    scene = bench_scene(name)
+    scene = _scene(name)
     out = {"robot": name}
     for B in (1, 64, 1024):
         ins, rot = _configs(scene, configs, configs if B == 1 else B)
@@ -98,15 +111,19 @@ def bench_robot(name: str, configs: int, repeat: int) -> dict:
     return out
 
 
-def bench_env(steps: int, B: int = 64) -> dict:
+def bench_env(steps: int, B: int = 64, env_id: str | None = None) -> dict:
     import envs
+    import envs.plant as plant
     import envs.robots as robots
     base = robots.ENV_SOLVER_OPTIONS
+    kwargs = envs.env_kwargs(env_id) if env_id else {"control": "force"}
     rates = {}
     try:
         for k in KERNELS:
-            robots.ENV_SOLVER_OPTIONS = dataclasses.replace(base, kernel=k)
-            venv = envs.CTRReachVecEnv(B, robot="fig3_two_tube", control="force")
+            # (the plant module holds its own reference: the robust env's perturbed plants)
+            robots.ENV_SOLVER_OPTIONS = plant.ENV_SOLVER_OPTIONS = dataclasses.replace(
+                base, kernel=k)
+            venv = envs.CTRReachVecEnv(B, robot="fig3_two_tube", **kwargs)
             venv.seed(0)
             venv.reset()
             rng = np.random.default_rng(0)
@@ -118,7 +135,7 @@ def bench_env(steps: int, B: int = 64) -> dict:
                 venv.step(a)
             rates[k] = steps * B / (time.perf_counter() - t0)
     finally:
-        robots.ENV_SOLVER_OPTIONS = base
+        robots.ENV_SOLVER_OPTIONS = plant.ENV_SOLVER_OPTIONS = base
     return rates
 
 
@@ -162,6 +179,10 @@ def main(argv=None) -> dict:
         rates = bench_env(args.env_steps)
         results["env_B64_robot_steps_per_s"] = rates
         print(f"\nforce env, B = 64: eager {rates['newton']:.0f}, compiled "
+              f"{rates['compiled']:.0f} robot-steps/s ({rates['compiled'] / rates['newton']:.2f}x)")
+        rates = bench_env(max(1, args.env_steps // 2), 16, "torchpvs/CTRReachForceRobust-v0")
+        results["robust_env_B16_robot_steps_per_s"] = rates
+        print(f"robust env (tip-loaded plants), B = 16: eager {rates['newton']:.0f}, compiled "
               f"{rates['compiled']:.0f} robot-steps/s ({rates['compiled'] / rates['newton']:.2f}x)")
     if args.first_use:
         results["first_use"] = first_use()

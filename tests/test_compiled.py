@@ -120,15 +120,118 @@ def test_float32_matches_float64_eager_to_float32_precision():
     assert float((e32.tip_position - c32.tip_position).abs().max()) < 1e-6
 
 
-def test_a_tip_load_runs_the_eager_solve_and_agrees():
-    """With a tip load the load Hessian needs the pose chain: the compiled kernel hands the
-    Newton solve and steps to the eager kernel (only the tip poses are compiled), so the two
-    kernels give the same iterations and the same equilibrium to rounding."""
-    sc = fig3().with_load(tip_force=[0.1, -0.2, 0.05])
-    eager, comp = both(sc)
+@pytest.mark.parametrize("force", [[0.1, -0.2, 0.05], [0.5, 0.3, -0.4]])
+def test_a_tip_force_is_solved_by_the_compiled_kernel_and_agrees(monkeypatch, force):
+    """With a dead tip force the compiled kernel solves (its load terms: compiled_load), and
+    gives the eager kernel's iterations, verdicts and equilibria to rounding (8 rotations)."""
+    calls = []
+    real = compiled.solve
+
+    def solve(*a, **k):
+        out = real(*a, **k)
+        calls.append(out is not None)
+        return out
+
+    monkeypatch.setattr(compiled, "solve", solve)
+    sc = fig3().with_load(tip_force=force)
+    rot = torch.tensor(np.random.default_rng(0).uniform(-3, 3, (8, 2)), dtype=DT)
+    eager, comp = both(sc, rotation=rot)
+    assert calls and all(calls), calls
     assert bool(comp.converged.all())
     assert_same(eager, comp)
     assert float((eager.q - comp.q).abs().max()) < 1e-12
+
+
+def test_a_tip_moment_still_runs_the_eager_solve_and_agrees(monkeypatch):
+    """A dead tip moment (non-conservative) is not in the compiled load terms: the compiled
+    kernel hands the solve to the eager one, with the same result."""
+    calls = []
+    real = compiled.solve
+
+    def solve(*a, **k):
+        out = real(*a, **k)
+        calls.append(out is not None)
+        return out
+
+    monkeypatch.setattr(compiled, "solve", solve)
+    eager, comp = both(fig3().with_load(tip_force=[0.1, 0.0, 0.0], tip_moment=[0.0, 0.002, 0.0]))
+    assert calls and not any(calls)
+    assert_same(eager, comp)
+
+
+def _captured_problems(scene, rotation, options):
+    """(q, Problem) of every Newton solve of ``tp.solve(scene, rotation=...)``."""
+    from torchpvs.newton import newton
+    got = []
+
+    def solve(q, prob, L_char, **kw):
+        got.append((q.clone(), prob))
+        return newton(q, prob, L_char, **kw)
+
+    KERNELS["capture"] = EAGER._replace(solve=solve)
+    try:
+        tp.solve(scene, rotation=rotation, options=dataclasses.replace(options, kernel="capture"))
+    finally:
+        del KERNELS["capture"]
+    return got
+
+
+@pytest.mark.parametrize("case", ["fig3", "random1", "nested3", "held"])
+def test_the_compiled_load_terms_are_the_autograd_ones(case):
+    """compiled_load.load_work's gradient and Hessian of the tip force's work against the
+    eager kernel's autograd through the Magnus chain (newton._load_hessian), at perturbed
+    coordinates of every captured problem: relative 1e-12. "held": a force put on an unloaded
+    problem, whose distal section is prescribed (the held tubes' Rz(psi) u* terms, which a
+    loaded layout never has)."""
+    from torchpvs.compiled_load import load_work
+    from torchpvs.mechanics import compact_q
+    from torchpvs.newton import _load_hessian
+    force = torch.tensor([0.2, -0.1, 0.3], dtype=DT)
+    sc = {"fig3": fig3(), "random1": random_scene(1), "nested3": nested_scene(3, seed=1),
+          "held": fig3()}[case]
+    if case != "held":
+        sc = sc.with_load(tip_force=force.tolist())
+    rot = torch.tensor(np.random.default_rng(0).uniform(-3, 3, (4, len(sc.tubes))), dtype=DT)
+    probs = _captured_problems(sc, rot, SolverOptions())
+    assert probs
+    gen = torch.Generator().manual_seed(0)
+    checked = held = 0
+    for q, prob in probs[:3]:
+        B = q.shape[0]
+        if case == "held":
+            assert prob.lay is not None and not prob.with_load
+            prob = prob._replace(lay=prob.lay._replace(force=force.expand(B, 3).contiguous()),
+                                 with_load=True)
+        held += int((prob.maps.pose.ustar_held != 0).any())
+        qc = compact_q(q, prob.maps.cidx)
+        qc = qc + 0.01 * torch.randn(qc.shape, generator=gen, dtype=DT) * prob.maps.qmask
+        Hr, gr = _load_hessian(qc, prob)
+        LD = compiled._load_arrays(prob, DT, B)
+        nc = qc.shape[1]
+        for b in range(B):
+            gW, HW = np.empty(nc), np.empty((nc, nc))
+            W = load_work(qc[b].numpy().copy(), *(a[b] for a in LD[:10]), LD[10], LD[11], 2,
+                          gW, HW)
+            assert W != 0.0
+            # newton._load_hessian differentiates minus the work
+            g_ref, H_ref = -gr[b].numpy(), -Hr[b].numpy()
+            assert np.abs(gW - g_ref).max() <= 1e-12 * np.abs(g_ref).max()
+            assert np.abs(HW - H_ref).max() <= 1e-12 * np.abs(H_ref).max()
+            checked += 1
+    assert checked >= 4
+    assert (held > 0) == (case == "held")
+
+
+def test_a_tip_force_in_float32_matches_the_eager_kernel_to_float32_precision():
+    """float32 with a tip force: the compiled load terms run in float32 and converge where the
+    eager kernel does, to its equilibrium within float32's resolution."""
+    sc = fig3().with_load(tip_force=[0.1, -0.2, 0.05])
+    rot = torch.tensor([[0.0, math.radians(a)] for a in range(0, 281, 40)], dtype=torch.float32)
+    e32, c32 = (tp.solve(sc, rotation=rot, options=SolverOptions(kernel=k, dtype=torch.float32))
+                for k in ("newton", "compiled"))
+    assert c32.tip_position.dtype == torch.float32
+    assert bool(c32.converged.all()) and torch.equal(e32.converged, c32.converged)
+    assert float((e32.tip_position - c32.tip_position).abs().max()) < 1e-6
 
 
 def test_the_compiled_kernel_is_registered_and_runs_solve_and_step(monkeypatch):

@@ -10,9 +10,10 @@ exact Hessian (the node sums of :func:`torchpvs.mechanics.elastic_grad_hess`), i
 factorization and the line-search energies cost a few microseconds; the eager kernel spends
 about a millisecond per iteration on operator dispatch at small batches.
 
-What it covers: float32 and float64 CPU tensors without a tip load (with a load the eager
-kernel's load Hessian through the Magnus chain is used: the whole call falls back to
-:data:`torchpvs.kernel.EAGER`), ``method`` ``"minimize"`` and ``"root"``. A ``deadline`` is
+What it covers: float32 and float64 CPU tensors, unloaded or under a dead tip force (its work
+``F . p_tip`` and that work's exact gradient and Hessian through the Magnus chain:
+:mod:`torchpvs.compiled_load`; a dead tip moment, non-conservative, falls back to
+:data:`torchpvs.kernel.EAGER` for the whole call), ``method`` ``"minimize"`` and ``"root"``. A ``deadline`` is
 checked once, on entry (past it, the eager kernel takes its single evaluation). Differences
 from the eager kernel, all at rounding level or in rare branches: sums are taken in another
 order (coordinates agree to ~1e-15 relative, iterations and verdicts are the same on the test
@@ -32,6 +33,7 @@ import warnings
 import numpy as np
 import torch
 
+from .compiled_load import load_work
 from .mechanics import compact_q, expand_q
 from .newton import NewtonResult, Problem, tolerance
 
@@ -70,9 +72,8 @@ def _applicable(q: torch.Tensor, prob: Problem) -> bool:
                       "eager one (SolverOptions(kernel='newton')); pip install numba",
                       RuntimeWarning, stacklevel=4)
         return False
-    if prob.with_load:   # the load's Hessian needs the pose chain (eager); zero loads are free
-        lay = prob.lay
-        return not bool((lay.force != 0).any() | (lay.moment != 0).any())
+    if prob.with_load:   # a dead tip moment (non-conservative) keeps the eager kernel
+        return not bool((prob.lay.moment != 0).any())
     return True
 
 
@@ -85,6 +86,32 @@ def _arrays(prob: Problem, dtype: torch.dtype):
 
     return (a("qmask"), a("psi0"), a("bvec"), a("h"), a("ustar"), a("EIw"), a("EIws"),
             a("GJw"), a("H_sections"), a("guide"), a("guide_const"), a("phi"), a("Qb"))
+
+
+def _load_arrays(prob: Problem, dtype: torch.dtype, B: int) -> tuple:
+    """What :func:`torchpvs.compiled_load.load_work` reads, batched: the compact index of every
+    padded coordinate, the padded mask, the pose constants, the tip force and the Magnus
+    tables; zero forces (and placeholder shapes) without a load."""
+    npt = np.float64 if dtype == torch.float64 else np.float32
+    if not prob.with_load:
+        z = np.zeros((B, 1), dtype=npt)
+        return (np.full((B, 1), -1, dtype=np.int64), z, z, z, np.zeros((B, 1), dtype=np.int64),
+                z, np.zeros((B, 1, 1), dtype=npt), np.zeros((B, 1, 1, 1, 2), dtype=npt),
+                np.zeros((B, 1, 1, 1), dtype=npt), np.zeros((B, 3), dtype=npt),
+                np.zeros((1, 1), dtype=npt), np.zeros((1, 1), dtype=npt))
+    lay, const, tab = prob.lay, prob.maps.pose, prob.tab
+    cidx = _get(prob.maps, "cidx")
+    nq = lay.qmask.shape[-1]
+    inv = torch.full((B, nq), -1, dtype=torch.long).scatter_(
+        1, cidx, torch.arange(cidx.shape[-1]).expand_as(cidx).contiguous())
+
+    def a(t):
+        return np.ascontiguousarray(t.detach().to(dtype).numpy())
+
+    return (_numpy(inv), a(lay.qmask), a(lay.psi0), a(lay.D),
+            np.ascontiguousarray(_get(const, "sec").numpy()),
+            *(a(_get(const, k)) for k in ("h", "presc_inc", "ustar_held", "presc_local")),
+            a(lay.force.expand(B, 3)), a(_get(tab, "phi_m")), a(_get(tab, "Q_m")))
 
 
 def _numpy(t: torch.Tensor) -> np.ndarray:
@@ -131,7 +158,8 @@ def solve(q: torch.Tensor, prob: Problem, L_char: torch.Tensor, *, method: str, 
     consts = np.array([tolerance(tol, dtype), 0.01 * eps ** 0.5, eps,
                        float(torch.finfo(dtype).tiny)], dtype=npt)
     run = _newton_parallel if _set_threads(B) else _newton_serial
-    run(qc, *arrs, Lc, consts, method == "minimize", max_iter, H, g, U, res, it, conv, verdict)
+    run(qc, *arrs, _load_arrays(prob, dtype, B), Lc, consts, method == "minimize", max_iter, H,
+        g, U, res, it, conv, verdict)
     t = torch.from_numpy
     # energy None: the driver evaluates it with the eager energy, so that Equilibrium.energy is
     # bit for bit mechanics.elastic_energy_maps at the returned q (the compiled sums round
@@ -154,7 +182,7 @@ def step(q: torch.Tensor, prob: Problem) -> tuple[torch.Tensor, torch.Tensor] | 
     eps = float(torch.finfo(dtype).eps)
     consts = np.array([0.0, 0.0, eps, float(torch.finfo(dtype).tiny)], dtype=npt)
     run = _step_parallel if _set_threads(qc.shape[0]) else _step_serial
-    run(qc, *_arrays(prob, dtype), consts, ok)
+    run(qc, *_arrays(prob, dtype), _load_arrays(prob, dtype, qc.shape[0]), consts, ok)
     okt = torch.from_numpy(ok)
     q1 = expand_q(torch.from_numpy(qc), cidx, nq)
     return torch.where(okt[:, None], q1, q), okt
@@ -416,6 +444,39 @@ def evaluate(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi,
     return U
 
 @_jit
+def total(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb, ld, order,
+          g, H):
+    """:func:`evaluate` (orders 0-2) plus the potential ``-F . p_tip`` of the element's dead tip
+    force and its derivatives (``ld``: :func:`element` of :func:`_load_arrays`;
+    :func:`torchpvs.compiled_load.load_work`); nothing is added for a zero force."""
+    U = evaluate(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb, order,
+                 g, H)
+    F = ld[9]
+    if F[0] == 0.0 and F[1] == 0.0 and F[2] == 0.0:
+        return U
+    nc = q.shape[0]
+    gW = np.empty(nc, dtype=q.dtype)
+    HW = np.empty((nc, nc) if order >= 2 else (1, 1), dtype=q.dtype)
+    W = load_work(q, ld[0], ld[1], ld[2], ld[3], ld[4], ld[5], ld[6], ld[7], ld[8], F, ld[10],
+                  ld[11], order, gW, HW)
+    if order >= 1:
+        for i in range(nc):
+            g[i] -= gW[i]
+    if order >= 2:
+        for i in range(nc):
+            for k in range(nc):
+                H[i, k] -= HW[i, k]
+    return U - W
+
+
+@_jit
+def element(LD, b):
+    """Element ``b`` of the batched load arrays (:func:`_load_arrays`)."""
+    return (LD[0][b], LD[1][b], LD[2][b], LD[3][b], LD[4][b], LD[5][b], LD[6][b], LD[7][b],
+            LD[8][b], LD[9][b], LD[10], LD[11])
+
+
+@_jit
 def cholesky(A, L):
     """Lower Cholesky factor of A into L; False where A is not positive definite."""
     n = A.shape[0]
@@ -521,7 +582,7 @@ def all_finite(v):
     return True
 
 @_jit
-def newton_one(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb,
+def newton_one(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb, ld,
                Lc, consts, minimize, max_iter, H, g, out):
     """One element's damped Newton (newton._newton). q and H, g are overwritten with the
     solution and the Hessian and gradient at it; out = (U, residual, iterations,
@@ -547,8 +608,8 @@ def newton_one(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, ph
     residual = math.inf
     converged = False
     for _ in range(max_iter + 1):
-        U = evaluate(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi,
-                     Qb, 2, g, H)
+        U = total(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb, ld,
+                  2, g, H)
         U_known = minimize
         for i in range(nc):
             H[i, i] += 1.0 - qm[i]
@@ -575,14 +636,14 @@ def newton_one(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, ph
                         vmax = max(vmax, abs(step[i]))
                     sign = -1.0 if slope > 0 else 1.0
                     den = max(vmax * Lc, 1e-30)
-                    f0 = evaluate(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide,
-                                  gconst, phi, Qb, 0, dummy_g, dummy_H)
+                    f0 = total(q, qm, psi0, bvec, h, us, EIw, EIws, GJw,
+                               Hsec, guide, gconst, phi, Qb, ld, 0, dummy_g, dummy_H)
                     t = 1.0
                     for _k in range(40):
                         for i in range(nc):
                             trial[i] = q[i] + t * (sign * step[i] / den)
-                        f = evaluate(trial, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec,
-                                     guide, gconst, phi, Qb, 0, dummy_g, dummy_H)
+                        f = total(trial, qm, psi0, bvec, h, us, EIw, EIws, GJw,
+                                  Hsec, guide, gconst, phi, Qb, ld, 0, dummy_g, dummy_H)
                         if f < f0:
                             left = True
                             break
@@ -645,11 +706,10 @@ def newton_one(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, ph
                 trial[i] = q[i] + step[i]
             accepted = True
             if not trust:
-                f0 = U if U_known else evaluate(q, qm, psi0, bvec, h, us, EIw, EIws, GJw,
-                                                Hsec, guide, gconst, phi, Qb, 0,
-                                                dummy_g, dummy_H)
-                f = evaluate(trial, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide,
-                             gconst, phi, Qb, 0, dummy_g, dummy_H)
+                f0 = U if U_known else total(q, qm, psi0, bvec, h, us, EIw, EIws, GJw,
+                                             Hsec, guide, gconst, phi, Qb, ld, 0, dummy_g, dummy_H)
+                f = total(trial, qm, psi0, bvec, h, us, EIw, EIws, GJw,
+                          Hsec, guide, gconst, phi, Qb, ld, 0, dummy_g, dummy_H)
                 accepted = armijo(f, f0, 1.0, slope, eps, tiny)
                 if not accepted:
                     t = 0.5
@@ -657,8 +717,8 @@ def newton_one(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, ph
                     for _k in range(29):
                         for i in range(nc):
                             best[i] = q[i] + t * step[i]
-                        f = evaluate(best, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec,
-                                     guide, gconst, phi, Qb, 0, dummy_g, dummy_H)
+                        f = total(best, qm, psi0, bvec, h, us, EIw, EIws, GJw,
+                                  Hsec, guide, gconst, phi, Qb, ld, 0, dummy_g, dummy_H)
                         if armijo(f, f0, t, slope, eps, tiny):
                             done = True
                             break
@@ -684,7 +744,7 @@ def newton_one(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, ph
     out[4] = verdict
 
 @_jit
-def step_one(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb, tiny):
+def step_one(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb, ld, tiny):
     """One element's undamped Newton step (kernel.newton_step), q overwritten where it
     succeeds; returns the success flag."""
     nc = q.shape[0]
@@ -695,7 +755,7 @@ def step_one(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi,
     x = np.empty(nc, dtype=dt)
     rhs = np.empty(nc, dtype=dt)
     sc = np.empty(nc, dtype=dt)
-    evaluate(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb, 2, g, H)
+    total(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb, ld, 2, g, H)
     for i in range(nc):
         H[i, i] += 1.0 - qm[i]
         rhs[i] = -g[i]
@@ -791,12 +851,12 @@ def _section_parallel(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gco
 
 
 @_jit
-def newton_into(b, q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb, Lc,
-                consts, minimize, max_iter, H, g, U, res, it, conv, verdict):
+def newton_into(b, q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb, LD,
+                Lc, consts, minimize, max_iter, H, g, U, res, it, conv, verdict):
     out = np.empty(5, dtype=q.dtype)
     newton_one(q[b], qm[b], psi0[b], bvec[b], h[b], us[b], EIw[b], EIws[b], GJw[b], Hsec[b],
-               guide[b], gconst[b], phi, Qb, Lc[b], consts, minimize, max_iter, H[b], g[b],
-               out)
+               guide[b], gconst[b], phi, Qb, element(LD, b), Lc[b], consts, minimize, max_iter,
+               H[b], g[b], out)
     U[b] = out[0]
     res[b] = out[1]
     it[b] = int(out[2])
@@ -806,35 +866,35 @@ def newton_into(b, q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst
 
 # The batch loops: serial, and across numba's threads (prange) for larger batches.
 @njit(cache=True, nogil=True)
-def _newton_serial(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb, Lc,
-                   consts, minimize, max_iter, H, g, U, res, it, conv, verdict):
+def _newton_serial(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb, LD,
+                   Lc, consts, minimize, max_iter, H, g, U, res, it, conv, verdict):
     for b in range(q.shape[0]):
         newton_into(b, q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb,
-                    Lc, consts, minimize, max_iter, H, g, U, res, it, conv, verdict)
+                    LD, Lc, consts, minimize, max_iter, H, g, U, res, it, conv, verdict)
 
 
 @njit(cache=True, nogil=True, parallel=True)
 def _newton_parallel(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb,
-                     Lc, consts, minimize, max_iter, H, g, U, res, it, conv, verdict):
+                     LD, Lc, consts, minimize, max_iter, H, g, U, res, it, conv, verdict):
     for b in prange(q.shape[0]):
         newton_into(b, q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb,
-                    Lc, consts, minimize, max_iter, H, g, U, res, it, conv, verdict)
+                    LD, Lc, consts, minimize, max_iter, H, g, U, res, it, conv, verdict)
 
 
 @njit(cache=True, nogil=True)
 def _step_serial(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb,
-                 consts, ok):
+                 LD, consts, ok):
     for b in range(q.shape[0]):
         ok[b] = step_one(q[b], qm[b], psi0[b], bvec[b], h[b], us[b], EIw[b], EIws[b], GJw[b],
-                         Hsec[b], guide[b], gconst[b], phi, Qb, consts[3])
+                         Hsec[b], guide[b], gconst[b], phi, Qb, element(LD, b), consts[3])
 
 
 @njit(cache=True, nogil=True, parallel=True)
 def _step_parallel(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb,
-                   consts, ok):
+                   LD, consts, ok):
     for b in prange(q.shape[0]):
         ok[b] = step_one(q[b], qm[b], psi0[b], bvec[b], h[b], us[b], EIw[b], EIws[b], GJw[b],
-                         Hsec[b], guide[b], gconst[b], phi, Qb, consts[3])
+                         Hsec[b], guide[b], gconst[b], phi, Qb, element(LD, b), consts[3])
 
 
 @_jit

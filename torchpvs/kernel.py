@@ -219,8 +219,8 @@ def _compiled_pose(q, lay, tab, constants):
 
 #: The compiled CPU kernel (:mod:`torchpvs.compiled`, numba): the Newton solve and step, the
 #: new-section step, the tip pose and the closed-form force partials per element; the eager
-#: kernel wherever it does not apply (GPU tensors; a tip load for the solve and step; partials
-#: that must carry a graph).
+#: kernel wherever it does not apply (GPU tensors; a tip moment for the solve and step, a tip
+#: load for the new-section step; partials that must carry a graph).
 COMPILED = EAGER._replace(solve=_compiled_solve, step=_compiled_step,
                           section_step=_compiled_section_step, pose=_compiled_pose,
                           partials=_compiled_partials)

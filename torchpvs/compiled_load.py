@@ -1,0 +1,467 @@
+"""Stage 5b (part) — the dead tip force's work and its exact derivatives, compiled.
+
+The compiled kernel (:mod:`torchpvs.compiled`) adds to the elastic energy the potential of a
+dead tip force, ``-F . p_tip(q)``. Its gradient and Hessian go through the Magnus pose chain
+(:func:`torchpvs.mechanics.tip_pose`: ``p = E_1 E_2 ... E_K o`` with ``E_k = exp(Omega_k)`` one
+4th-order Magnus step, ``K`` = kept sections x steps per section), where the eager kernel uses
+autograd (:func:`torchpvs.newton._load_hessian`: the batch repeated ``nq`` times and two reverse
+passes, most of a loaded solve). Here, per element:
+
+* each step's exponential with its exact first and second derivatives in the step's six twist
+  components, by second-order forward (jet) arithmetic on the closed-form ``SE(3)`` exponential;
+* the twist's first and second derivatives in ``q``: the Magnus twist is bilinear in the
+  bending at the step's two nodes, the bending linear in the section's coefficients plus
+  ``Rz(psi_j) u*_j`` of a prescribed (held) tube, with ``psi_j`` linear in ``q``;
+* the chain: with ``z_ka = dp/dOmega_ka`` and ``omega_ka`` the spatial angular velocity of step
+  ``k`` per twist component ``a``, the mixed second derivative of two different steps
+  ``k < l`` is exactly ``omega_ka x z_lb`` (the tip is bilinear in ``E_k`` and ``E_l``), so the
+  cross blocks are sums of suffix sums; the same step's block comes from the jets.
+
+Cost: O(K nc^2) per element (``nc`` compact coordinates), no autograd graph. Only a force:
+a dead tip moment (non-conservative; the eager kernel's symmetric part) keeps the eager path.
+The result is checked against the autograd Hessian in ``tests/test_compiled_kernel.py``.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+
+try:
+    from numba import njit
+except ImportError:      # pragma: no cover - numba is a dependency; see torchpvs.compiled
+    def njit(*args, **kwargs):
+        return lambda f: f
+
+_jit = njit(cache=True, nogil=True)
+
+# a jet: value, gradient (6), Hessian (6 x 6 row-major) in the twist (wx, wy, wz, vx, vy, vz)
+_NJ = 43
+
+
+@_jit
+def _jmul(x, y, o):
+    o[0] = x[0] * y[0]
+    for i in range(6):
+        o[1 + i] = x[0] * y[1 + i] + y[0] * x[1 + i]
+    for i in range(6):
+        for j in range(6):
+            o[7 + 6 * i + j] = (x[0] * y[7 + 6 * i + j] + y[0] * x[7 + 6 * i + j]
+                                + x[1 + i] * y[1 + j] + y[1 + i] * x[1 + j])
+
+
+@_jit
+def _jfun(x, f0, f1, f2, o):
+    """o = f(x) for a scalar function with f(x0) = f0, f'(x0) = f1, f''(x0) = f2."""
+    o[0] = f0
+    for i in range(6):
+        o[1 + i] = f1 * x[1 + i]
+    for i in range(6):
+        for j in range(6):
+            o[7 + 6 * i + j] = f1 * x[7 + 6 * i + j] + f2 * x[1 + i] * x[1 + j]
+
+
+@_jit
+def _series(s, shift):
+    """``f(s) = sum_k (-s)^k / (2k + shift)!`` and its first two derivatives in ``s`` (used for
+    ``s < 1``: 12 terms leave < 1e-20)."""
+    f0 = 0.0
+    f1 = 0.0
+    f2 = 0.0
+    fact = 1.0
+    for i in range(2, shift + 1):
+        fact *= i
+    sign = 1.0
+    for k in range(12):
+        c = sign / fact
+        f0 += c * s ** k
+        if k >= 1:
+            f1 += c * k * s ** (k - 1)
+        if k >= 2:
+            f2 += c * k * (k - 1) * s ** (k - 2)
+        sign = -sign
+        fact *= (2 * k + shift + 1) * (2 * k + shift + 2)
+    return f0, f1, f2
+
+
+@_jit
+def _qv(qc, inv, qm, f):
+    """The value of padded coordinate ``f`` (zero where it is not compact)."""
+    ci = inv[f]
+    return qc[ci] * qm[f] if ci >= 0 else 0.0
+
+
+@_jit
+def _mat4(A, B, out):
+    for i in range(4):
+        for j in range(4):
+            acc = 0.0
+            for k in range(4):
+                acc += A[i, k] * B[k, j]
+            out[i, j] = acc
+
+
+@_jit
+def _exp_coefficients(s):
+    """sin t / t, (1 - cos t) / t^2, (t - sin t) / t^3 as functions of s = t^2, each with its
+    first and second derivative in s (lie._coefficients, mechanics' Magnus exponential)."""
+    if s < 1.0:
+        a0, a1, a2 = _series(s, 1)
+        b0, b1, b2 = _series(s, 2)
+        c0, c1, c2 = _series(s, 3)
+        return a0, a1, a2, b0, b1, b2, c0, c1, c2
+    t = math.sqrt(s)
+    st = math.sin(t)
+    ct = math.cos(t)
+    a0 = st / t
+    a1 = (ct - a0) / (2 * s)
+    a2 = (-0.5 * a0 - 3 * a1) / (2 * s)
+    b0 = (1 - ct) / s
+    b1 = (0.5 * a0 - b0) / s
+    b2 = (0.5 * a1 - 2 * b1) / s
+    c0 = (1 - a0) / s
+    c1 = (-a1 - c0) / s
+    c2 = (-a2 - 2 * c1) / s
+    return a0, a1, a2, b0, b1, b2, c0, c1, c2
+
+
+@_jit
+def exp_jets(om, E, dE, d2E):
+    """``E = exp(om)`` (4 x 4, om = (omega, v)) into E, its derivatives ``dE[a] = dE/dom_a``
+    (6, 4, 4) and ``d2E[a, b]`` (6, 6, 4, 4): ``R = I + A W + B W^2``, ``t = v + B (w x v) +
+    C (w (w.v) - |w|^2 v)`` (W = [w]x), by jets."""
+    dt = om.dtype
+    var = np.zeros((6, _NJ), dtype=dt)
+    for i in range(6):
+        var[i, 0] = om[i]
+        var[i, 1 + i] = 1.0
+    ww = np.zeros((3, 3, _NJ), dtype=dt)
+    for i in range(3):
+        for j in range(i, 3):
+            _jmul(var[i], var[j], ww[i, j])
+            if j != i:
+                ww[j, i, :] = ww[i, j]
+    s = ww[0, 0] + ww[1, 1] + ww[2, 2]
+    a0, a1, a2, b0, b1, b2, c0, c1, c2 = _exp_coefficients(s[0])
+    A = np.empty(_NJ, dtype=dt)
+    Bj = np.empty(_NJ, dtype=dt)
+    Cj = np.empty(_NJ, dtype=dt)
+    _jfun(s, a0, a1, a2, A)
+    _jfun(s, b0, b1, b2, Bj)
+    _jfun(s, c0, c1, c2, Cj)
+    tmp = np.empty(_NJ, dtype=dt)
+    ent = np.zeros((3, 4, _NJ), dtype=dt)
+    # R = I + A [w]x + B (w w^T - s I)
+    for i in range(3):
+        for j in range(3):
+            w2 = ww[i, j].copy()
+            if i == j:
+                w2 -= s
+            _jmul(Bj, w2, tmp)
+            ent[i, j, :] = tmp
+            if i == j:
+                ent[i, j, 0] += 1.0
+    # [w]x entries: (0,1) -wz, (0,2) wy, (1,0) wz, (1,2) -wx, (2,0) -wy, (2,1) wx
+    _jmul(A, var[2], tmp)
+    ent[0, 1, :] -= tmp
+    ent[1, 0, :] += tmp
+    _jmul(A, var[1], tmp)
+    ent[0, 2, :] += tmp
+    ent[2, 0, :] -= tmp
+    _jmul(A, var[0], tmp)
+    ent[1, 2, :] -= tmp
+    ent[2, 1, :] += tmp
+    # t = v + B (w x v) + C (w (w.v) - s v)
+    wv = np.zeros(_NJ, dtype=dt)
+    for i in range(3):
+        _jmul(var[i], var[3 + i], tmp)
+        wv += tmp
+    cross = np.zeros((3, _NJ), dtype=dt)
+    for i in range(3):
+        j = (i + 1) % 3
+        k = (i + 2) % 3
+        _jmul(var[j], var[3 + k], tmp)
+        cross[i] += tmp
+        _jmul(var[k], var[3 + j], tmp)
+        cross[i] -= tmp
+    inner = np.empty(_NJ, dtype=dt)
+    t2 = np.empty(_NJ, dtype=dt)
+    for i in range(3):
+        _jmul(var[i], wv, inner)
+        _jmul(s, var[3 + i], t2)
+        inner -= t2
+        _jmul(Cj, inner, t2)
+        _jmul(Bj, cross[i], tmp)
+        ent[i, 3, :] = var[3 + i] + tmp + t2
+    E[:, :] = 0.0
+    dE[:, :, :] = 0.0
+    d2E[:, :, :, :] = 0.0
+    E[3, 3] = 1.0
+    for i in range(3):
+        for j in range(4):
+            E[i, j] = ent[i, j, 0]
+            for a in range(6):
+                dE[a, i, j] = ent[i, j, 1 + a]
+                for b in range(6):
+                    d2E[a, b, i, j] = ent[i, j, 7 + 6 * a + b]
+
+
+@_jit
+def load_work(qc, inv, qm, psi0b, D, sec, h, presc_inc, us_held, presc_local, F, phi, Qb,
+              order, gW, HW):
+    """The work ``W = F . p_tip`` [J] of one element's dead tip force (returned); with
+    ``order >= 1`` its gradient in the compact coordinates into ``gW (nc,)``, with ``order >= 2``
+    its Hessian into ``HW (nc, nc)``. ``qc (nc,)`` compact coordinates, ``inv (nq,)`` the compact
+    index of each padded coordinate (-1: not compact, zero), ``qm (nq,)`` the padded mask, and
+    the layout's pose constants (:class:`torchpvs.mechanics.PoseConstants` of the element,
+    compiled.pose_one's arguments). Zero (and nothing computed) for a zero force."""
+    nc = qc.shape[0]
+    if order >= 1:
+        gW[:] = 0.0
+    if order >= 2:
+        HW[:, :] = 0.0
+    if F[0] == 0.0 and F[1] == 0.0 and F[2] == 0.0:
+        return 0.0
+    dt = qc.dtype
+    N = psi0b.shape[0]
+    Sp = sec.shape[0]
+    G, n = phi.shape
+    m = G // 2
+    C = 2 + N
+    K = Sp * m
+    der = order >= 1
+    k3 = 3.0 ** 0.5 / 12.0
+
+    start = np.empty(N, dtype=dt)
+    dstart = np.zeros((N, nc), dtype=dt)
+    for j in range(N):
+        start[j] = psi0b[j] + D[j] * _qv(qc, inv, qm, j)
+        if der and inv[j] >= 0:
+            dstart[j, inv[j]] = D[j] * qm[j]
+    Om = np.empty((K, 6), dtype=dt)
+    dOm = np.zeros((K, 6, nc), dtype=dt) if der else np.zeros((1, 6, 1), dtype=dt)
+    # per step and node: bending u (2), its gradient, and the held tubes' Rz(psi) u* with
+    # the angle's gradient (their second derivatives in q)
+    uu = np.empty((K, 2, 2), dtype=dt)
+    du = np.zeros((K, 2, 2, nc), dtype=dt) if der else np.zeros((1, 2, 2, 1), dtype=dt)
+    held = np.zeros((K, 2, N), dtype=np.bool_)
+    Rh = np.zeros((K, 2, N, 2), dtype=dt)
+    dpsi = np.zeros((K, 2, N, nc), dtype=dt) if der else np.zeros((1, 2, N, 1), dtype=dt)
+    hsv = np.empty(K, dtype=dt)
+    k = 0
+    for kk in range(Sp):
+        off = N + sec[kk] * C * n
+        hk = h[kk]
+        hs = hk / m
+        kq = k3 * hs * hs
+        for i in range(m):
+            for nd in range(2):
+                gg = 2 * i + nd
+                ux = 0.0
+                uy = 0.0
+                for p in range(n):
+                    ux += _qv(qc, inv, qm, off + p) * phi[gg, p]
+                    uy += _qv(qc, inv, qm, off + n + p) * phi[gg, p]
+                    if der:
+                        ci = inv[off + p]
+                        if ci >= 0:
+                            du[k, nd, 0, ci] += qm[off + p] * phi[gg, p]
+                        ci = inv[off + n + p]
+                        if ci >= 0:
+                            du[k, nd, 1, ci] += qm[off + n + p] * phi[gg, p]
+                for j in range(N):
+                    hx = us_held[kk, gg, j, 0]
+                    hy = us_held[kk, gg, j, 1]
+                    if hx == 0.0 and hy == 0.0:
+                        continue
+                    held[k, nd, j] = True
+                    loc = 0.0
+                    for p in range(n):
+                        loc += _qv(qc, inv, qm, off + (2 + j) * n + p) * Qb[gg, p]
+                    psi = start[j] + 0.5 * hk * loc + presc_local[kk, gg, j]
+                    cs = math.cos(psi)
+                    sn = math.sin(psi)
+                    rx = cs * hx - sn * hy
+                    ry = sn * hx + cs * hy
+                    Rh[k, nd, j, 0] = rx
+                    Rh[k, nd, j, 1] = ry
+                    ux += rx
+                    uy += ry
+                    if der:
+                        dpsi[k, nd, j, :] = dstart[j]
+                        for p in range(n):
+                            f = off + (2 + j) * n + p
+                            ci = inv[f]
+                            if ci >= 0:
+                                dpsi[k, nd, j, ci] += 0.5 * hk * Qb[gg, p] * qm[f]
+                        for c in range(nc):
+                            du[k, nd, 0, c] -= ry * dpsi[k, nd, j, c]
+                            du[k, nd, 1, c] += rx * dpsi[k, nd, j, c]
+                uu[k, nd, 0] = ux
+                uu[k, nd, 1] = uy
+            u1x, u1y, u2x, u2y = uu[k, 0, 0], uu[k, 0, 1], uu[k, 1, 0], uu[k, 1, 1]
+            Om[k, 0] = 0.5 * hs * (u1x + u2x)
+            Om[k, 1] = 0.5 * hs * (u1y + u2y)
+            Om[k, 2] = kq * (u1x * u2y - u1y * u2x)
+            Om[k, 3] = kq * (u1y - u2y)
+            Om[k, 4] = -kq * (u1x - u2x)
+            Om[k, 5] = hs
+            hsv[k] = hs
+            if der:
+                for c in range(nc):
+                    d1x, d1y = du[k, 0, 0, c], du[k, 0, 1, c]
+                    d2x, d2y = du[k, 1, 0, c], du[k, 1, 1, c]
+                    dOm[k, 0, c] = 0.5 * hs * (d1x + d2x)
+                    dOm[k, 1, c] = 0.5 * hs * (d1y + d2y)
+                    dOm[k, 2, c] = kq * (d1x * u2y + u1x * d2y - d1y * u2x - u1y * d2x)
+                    dOm[k, 3, c] = kq * (d1y - d2y)
+                    dOm[k, 4, c] = -kq * (d1x - d2x)
+            k += 1
+        for j in range(N):
+            f = off + (2 + j) * n
+            start[j] += hk * _qv(qc, inv, qm, f) + presc_inc[kk, j]
+            if der and inv[f] >= 0:
+                dstart[j, inv[f]] += hk * qm[f]
+    # the chain: frames before each step, the exponentials and their jets
+    Pprev = np.empty((K, 4, 4), dtype=dt)
+    E = np.empty((K, 4, 4), dtype=dt)
+    dE = np.empty((K, 6, 4, 4), dtype=dt)
+    d2E = np.empty((K, 6, 6, 4, 4), dtype=dt)
+    P = np.eye(4, dtype=dt)
+    for k in range(K):
+        Pprev[k] = P
+        exp_jets(Om[k], E[k], dE[k], d2E[k])
+        _mat4(Pprev[k], E[k], P)
+    W = F[0] * P[0, 3] + F[1] * P[1, 3] + F[2] * P[2, 3]
+    if not der:
+        return W
+    p = P[:3, 3].copy()
+    gOm = np.empty((K, 6), dtype=dt)
+    z = np.empty((K, 6, 3), dtype=dt)         # dp/dOm_ka (base frame)
+    w = np.empty((K, 6, 3), dtype=dt)         # spatial angular velocity per Om_ka
+    MOm = np.empty((K, 6, 6), dtype=dt)       # d2W/dOm_k dOm_k
+    r = np.empty(4, dtype=dt)
+    Floc = np.empty(3, dtype=dt)
+    y = np.empty(3, dtype=dt)
+    om = np.empty(3, dtype=dt)
+    Pk = np.empty((4, 4), dtype=dt)
+    for k in range(K):
+        Rp = Pprev[k, :3, :3]
+        _mat4(Pprev[k], E[k], Pk)
+        for i in range(3):       # the tip in frame k
+            acc = 0.0
+            for l in range(3):
+                acc += Pk[l, i] * (p[l] - Pk[l, 3])
+            r[i] = acc
+        r[3] = 1.0
+        for i in range(3):
+            Floc[i] = Rp[0, i] * F[0] + Rp[1, i] * F[1] + Rp[2, i] * F[2]
+        for a in range(6):
+            for i in range(3):
+                acc = 0.0
+                for l in range(4):
+                    acc += dE[k, a, i, l] * r[l]
+                y[i] = acc
+            gOm[k, a] = Floc[0] * y[0] + Floc[1] * y[1] + Floc[2] * y[2]
+            # omega_local = vee(dR_a R^T)
+            om[:] = 0.0
+            for l in range(3):
+                om[0] += 0.5 * (dE[k, a, 2, l] * E[k, 1, l] - dE[k, a, 1, l] * E[k, 2, l])
+                om[1] += 0.5 * (dE[k, a, 0, l] * E[k, 2, l] - dE[k, a, 2, l] * E[k, 0, l])
+                om[2] += 0.5 * (dE[k, a, 1, l] * E[k, 0, l] - dE[k, a, 0, l] * E[k, 1, l])
+            for i in range(3):
+                z[k, a, i] = Rp[i, 0] * y[0] + Rp[i, 1] * y[1] + Rp[i, 2] * y[2]
+                w[k, a, i] = Rp[i, 0] * om[0] + Rp[i, 1] * om[1] + Rp[i, 2] * om[2]
+            if order >= 2:
+                for b in range(a, 6):
+                    acc = 0.0
+                    for i in range(3):
+                        yi = 0.0
+                        for l in range(4):
+                            yi += d2E[k, a, b, i, l] * r[l]
+                        acc += Floc[i] * yi
+                    MOm[k, a, b] = acc
+                    MOm[k, b, a] = acc
+        for a in range(6):
+            ga = gOm[k, a]
+            if ga != 0.0:
+                for c in range(nc):
+                    gW[c] += ga * dOm[k, a, c]
+    if order < 2:
+        return W
+    T = np.empty((6, nc), dtype=dt)
+    Ak = np.empty((3, nc), dtype=dt)
+    Ysuf = np.zeros((3, nc), dtype=dt)
+    Cr = np.zeros((nc, nc), dtype=dt)
+    for k in range(K - 1, -1, -1):
+        # the step's own block: dOm^T MOm dOm
+        for a in range(6):
+            for c in range(nc):
+                acc = 0.0
+                for b in range(6):
+                    acc += MOm[k, a, b] * dOm[k, b, c]
+                T[a, c] = acc
+        for a in range(6):
+            for c1 in range(nc):
+                d = dOm[k, a, c1]
+                if d != 0.0:
+                    for c2 in range(nc):
+                        HW[c1, c2] += d * T[a, c2]
+        # cross blocks with the later steps: A_k^T (sum_{l > k} Z_l x F), then Ysuf += Z_k x F
+        for i in range(3):
+            for c in range(nc):
+                acc = 0.0
+                for a in range(6):
+                    acc += w[k, a, i] * dOm[k, a, c]
+                Ak[i, c] = acc
+        for c1 in range(nc):
+            a0, a1, a2 = Ak[0, c1], Ak[1, c1], Ak[2, c1]
+            if a0 != 0.0 or a1 != 0.0 or a2 != 0.0:
+                for c2 in range(nc):
+                    Cr[c1, c2] += a0 * Ysuf[0, c2] + a1 * Ysuf[1, c2] + a2 * Ysuf[2, c2]
+        for c in range(nc):
+            z0 = 0.0
+            z1 = 0.0
+            z2 = 0.0
+            for a in range(6):
+                d = dOm[k, a, c]
+                z0 += z[k, a, 0] * d
+                z1 += z[k, a, 1] * d
+                z2 += z[k, a, 2] * d
+            Ysuf[0, c] += z1 * F[2] - z2 * F[1]
+            Ysuf[1, c] += z2 * F[0] - z0 * F[2]
+            Ysuf[2, c] += z0 * F[1] - z1 * F[0]
+        # the twist's own second derivative in q, contracted with dW/dOm
+        hs = hsv[k]
+        kq = k3 * hs * hs
+        g0, g1, g2, g3, g4 = gOm[k, 0], gOm[k, 1], gOm[k, 2], gOm[k, 3], gOm[k, 4]
+        u1x, u1y, u2x, u2y = uu[k, 0, 0], uu[k, 0, 1], uu[k, 1, 0], uu[k, 1, 1]
+        cx0 = 0.5 * hs * g0 + kq * g2 * u2y - kq * g4
+        cx1 = 0.5 * hs * g0 - kq * g2 * u1y + kq * g4
+        cy0 = 0.5 * hs * g1 - kq * g2 * u2x + kq * g3
+        cy1 = 0.5 * hs * g1 + kq * g2 * u1x - kq * g3
+        for nd in range(2):
+            cx = cx0 if nd == 0 else cx1
+            cy = cy0 if nd == 0 else cy1
+            for j in range(N):
+                if not held[k, nd, j]:
+                    continue
+                sj = -(cx * Rh[k, nd, j, 0] + cy * Rh[k, nd, j, 1])
+                for c1 in range(nc):
+                    d = sj * dpsi[k, nd, j, c1]
+                    if d != 0.0:
+                        for c2 in range(nc):
+                            HW[c1, c2] += d * dpsi[k, nd, j, c2]
+        bk = kq * g2
+        if bk != 0.0:
+            for c1 in range(nc):
+                a1x, a1y = du[k, 0, 0, c1], du[k, 0, 1, c1]
+                a2x, a2y = du[k, 1, 0, c1], du[k, 1, 1, c1]
+                for c2 in range(nc):
+                    HW[c1, c2] += bk * (a1x * du[k, 1, 1, c2] + a2y * du[k, 0, 0, c2]
+                                        - a1y * du[k, 1, 0, c2] - a2x * du[k, 0, 1, c2])
+    for c1 in range(nc):
+        for c2 in range(nc):
+            HW[c1, c2] += Cr[c1, c2] + Cr[c2, c1]
+    return W
