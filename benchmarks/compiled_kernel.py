@@ -1,8 +1,8 @@
 """The compiled kernel against the eager one, side by side in one process.
 
     python benchmarks/compiled_kernel.py [--robots fig3 three_tube fig3_loaded] [--configs 32]
-                                         [--repeat 3] [--env-steps 20] [--first-use]
-                                         [--json out.json]
+                                         [--batches 1 64 1024] [--repeat 3] [--env-steps 20]
+                                         [--first-use] [--json out.json]
 
 Per robot (the paper's Fig. 3 scene, the three-tube preset, and ``fig3_loaded``: the Fig. 3 scene
 under a dead tip force of 0.3 N, the load the robust environment's plants carry at most),
@@ -62,10 +62,10 @@ def _scene(name: str):
     return bench_scene(name)
 
 
-def bench_robot(name: str, configs: int, repeat: int) -> dict:
+def bench_robot(name: str, configs: int, repeat: int, batches=(1, 64, 1024)) -> dict:
     scene = _scene(name)
-    out = {"robot": name}
-    for B in (1, 64, 1024):
+    out = {"robot": name, "batches": list(batches)}
+    for B in batches:
         ins, rot = _configs(scene, configs, configs if B == 1 else B)
         opts = {k: torchpvs.SolverOptions(kernel=k) for k in KERNELS}
         step = math.radians(1.0)
@@ -159,13 +159,15 @@ def main(argv=None) -> dict:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--robots", nargs="+", default=["fig3", "three_tube"])
     ap.add_argument("--configs", type=int, default=32)
+    ap.add_argument("--batches", type=int, nargs="+", default=[1, 64, 1024])
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--env-steps", type=int, default=20)
     ap.add_argument("--first-use", action="store_true")
     ap.add_argument("--json")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
-    results = {"robots": [bench_robot(r, args.configs, args.repeat) for r in args.robots]}
+    results = {"robots": [bench_robot(r, args.configs, args.repeat, args.batches)
+                          for r in args.robots]}
     for r in results["robots"]:
         print(f"\n{r['robot']}: ms per solve (best of {args.repeat}, alternating rounds)")
         print(f"{'case':<14}{'eager':>10}{'compiled':>10}{'eager/compiled':>16}")
@@ -173,7 +175,7 @@ def main(argv=None) -> dict:
             if isinstance(t, dict) and "newton" in t:
                 print(f"{key:<14}{t['newton']:>10.3f}{t['compiled']:>10.3f}"
                       f"{t['newton'] / t['compiled']:>15.2f}x")
-        for B in (1, 64, 1024):
+        for B in r["batches"]:
             print(f"B = {B} agreement: {r[f'B{B}_agreement']}")
     if args.env_steps:
         rates = bench_env(args.env_steps)
