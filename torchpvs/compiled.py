@@ -13,12 +13,12 @@ about a millisecond per iteration on operator dispatch at small batches.
 What it covers: float32 and float64 CPU tensors, unloaded or under a dead tip force (its work
 ``F . p_tip`` and that work's exact gradient and Hessian through the Magnus chain:
 :mod:`torchpvs.compiled_load`; a dead tip moment, non-conservative, falls back to
-:data:`torchpvs.kernel.EAGER` for the whole call), ``method`` ``"minimize"`` and ``"root"``. A ``deadline`` is
-checked once, on entry (past it, the eager kernel takes its single evaluation). Differences
-from the eager kernel, all at rounding level or in rare branches: sums are taken in another
-order (coordinates agree to ~1e-15 relative, iterations and verdicts are the same on the test
-scenes) and the 8-escape cap of the saddle escape counts per element (the eager kernel counts
-per batch). The energy at the solution is left to the driver (eager, bit for bit).
+:data:`torchpvs.kernel.EAGER` for the whole call), ``method`` ``"minimize"`` and ``"root"``. A
+``deadline`` is checked once, on entry (past it, the eager kernel takes its single evaluation).
+Differences from the eager kernel, all at rounding level or in rare branches: sums are taken in
+another order (coordinates agree to ~1e-15 relative, iterations and verdicts are the same on
+the test scenes) and the 8-escape cap of the saddle escape counts per element (the eager kernel
+counts per batch). The energy at the solution is left to the driver (eager, bit for bit).
 
 :data:`COMPILED` (``SolverOptions(kernel="compiled")``) is the eager kernel with ``solve`` and
 ``step`` replaced; :func:`available` says whether numba is importable here.
