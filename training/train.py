@@ -27,10 +27,10 @@ replaces the whole ``env_kwargs`` mapping instead). Keys of the entry: ``n_times
 zoo) and any keyword of the algorithm's class; anything else is refused by name.
 
 Each run folder (``<out>/<algo>_<env>_s<seed>_<time>/``) keeps ``hyperparams.yml`` (the
-resolved entry), ``command.txt``, TensorBoard logs, checkpoints, ``evaluations.npz`` and
-``best_model.zip`` from the evaluation callback, the final ``model.zip``, ``model.json`` (the
-algorithm, env id and kwargs, residual spec: what :mod:`training.evaluate` needs to load it)
-and ``train.log``.
+resolved entry), ``command.txt``, TensorBoard logs, checkpoints (one per evaluation),
+``evaluations.npz`` and ``best_model.zip`` from the evaluation callback, the final
+``model.zip``, ``model.json`` (the algorithm, env id and kwargs, residual spec: what
+:mod:`training.evaluate` needs to load it) and ``train.log``.
 """
 
 from __future__ import annotations
@@ -269,7 +269,10 @@ def _callbacks(algo, env_id, hp, venv_train, run_dir: Path, seed: int, total: in
                                 eval_freq=max(1, eval_freq // venv_train.num_envs),
                                 log_path=str(run_dir), best_model_save_path=str(run_dir),
                                 deterministic=True, verbose=0))
-    cbs.append(CheckpointCallback(save_freq=max(1, total // 5 // venv_train.num_envs),
+    # a checkpoint at every evaluation, so the one chosen on the selection episodes exists
+    # (EvalCallback keeps only the best mean return); every fifth of the run without them
+    every = (eval_freq if eval_freq > 0 and eval_episodes > 0 else total // 5)
+    cbs.append(CheckpointCallback(save_freq=max(1, every // venv_train.num_envs),
                                   save_path=str(run_dir / "checkpoints"), name_prefix="model"))
     if progress:
         cbs.append(ProgressBarCallback())

@@ -155,6 +155,21 @@ def test_training_cli_overrides_reach_the_run(tmp_path):
     assert meta["algo"] == "td3" and meta["residual"] == {"base": "osc", "scale": 0.2}
 
 
+def test_every_evaluation_has_its_checkpoint(tmp_path):
+    """A checkpoint is saved at every evaluation, so the checkpoint chosen by selection success
+    (not only EvalCallback's best mean return) exists afterwards."""
+    code = train.main(["--algo", "td3", "-n", "60", "--out", str(tmp_path), "--eval-freq", "20",
+                       "--eval-episodes", "2", "--env-kwargs", "max_episode_steps:10",
+                       "--hyperparams", "n_envs:2", "learning_starts:20", "buffer_size:500",
+                       "batch_size:16", "callback:None", "--no-progress"])
+    assert code == 0
+    (run,) = tmp_path.iterdir()
+    evaluated = np.load(run / "evaluations.npz")["timesteps"].tolist()
+    assert evaluated == [20, 40, 60]
+    saved = sorted(int(f.stem.split("_")[1]) for f in (run / "checkpoints").glob("model_*.zip"))
+    assert saved == evaluated
+
+
 class _Scripted:
     """A policy that is not a policy: it teleports nothing, it just replays fixed actions."""
 
