@@ -19,7 +19,7 @@ passes, most of a loaded solve). Here, per element:
 
 Cost: O(K nc^2) per element (``nc`` compact coordinates), no autograd graph. Only a force:
 a dead tip moment (non-conservative; the eager kernel's symmetric part) keeps the eager path.
-The result is checked against the autograd Hessian in ``tests/test_compiled_kernel.py``.
+The result is checked against the autograd Hessian in ``tests/test_compiled.py``.
 """
 
 from __future__ import annotations
