@@ -120,10 +120,9 @@ def test_float32_matches_float64_eager_to_float32_precision():
     assert float((e32.tip_position - c32.tip_position).abs().max()) < 1e-6
 
 
-@pytest.mark.parametrize("force", [[0.1, -0.2, 0.05], [0.5, 0.3, -0.4]])
-def test_a_tip_force_is_solved_by_the_compiled_kernel_and_agrees(monkeypatch, force):
-    """With a dead tip force the compiled kernel solves (its load terms: compiled_load), and
-    gives the eager kernel's iterations, verdicts and equilibria to rounding (8 rotations)."""
+def _spy_compiled_solve(monkeypatch) -> list[bool]:
+    """Patch compiled.solve to record, per call, whether the compiled kernel solved (True) or
+    handed the solve to the eager one (None returned: False)."""
     calls = []
     real = compiled.solve
 
@@ -133,6 +132,14 @@ def test_a_tip_force_is_solved_by_the_compiled_kernel_and_agrees(monkeypatch, fo
         return out
 
     monkeypatch.setattr(compiled, "solve", solve)
+    return calls
+
+
+@pytest.mark.parametrize("force", [[0.1, -0.2, 0.05], [0.5, 0.3, -0.4]])
+def test_a_tip_force_is_solved_by_the_compiled_kernel_and_agrees(monkeypatch, force):
+    """With a dead tip force the compiled kernel solves (its load terms: compiled_load), and
+    gives the eager kernel's iterations, verdicts and equilibria to rounding (8 rotations)."""
+    calls = _spy_compiled_solve(monkeypatch)
     sc = fig3().with_load(tip_force=force)
     rot = torch.tensor(np.random.default_rng(0).uniform(-3, 3, (8, 2)), dtype=DT)
     eager, comp = both(sc, rotation=rot)
@@ -145,15 +152,7 @@ def test_a_tip_force_is_solved_by_the_compiled_kernel_and_agrees(monkeypatch, fo
 def test_a_tip_moment_still_runs_the_eager_solve_and_agrees(monkeypatch):
     """A dead tip moment (non-conservative) is not in the compiled load terms: the compiled
     kernel hands the solve to the eager one, with the same result."""
-    calls = []
-    real = compiled.solve
-
-    def solve(*a, **k):
-        out = real(*a, **k)
-        calls.append(out is not None)
-        return out
-
-    monkeypatch.setattr(compiled, "solve", solve)
+    calls = _spy_compiled_solve(monkeypatch)
     eager, comp = both(fig3().with_load(tip_force=[0.1, 0.0, 0.0], tip_moment=[0.0, 0.002, 0.0]))
     assert calls and not any(calls)
     assert_same(eager, comp)
