@@ -88,17 +88,14 @@ def _arrays(prob: Problem, dtype: torch.dtype):
             a("GJw"), a("H_sections"), a("guide"), a("guide_const"), a("phi"), a("Qb"))
 
 
-def _load_arrays(prob: Problem, dtype: torch.dtype, B: int) -> tuple:
+def _load_arrays(prob: Problem, dtype: torch.dtype, B: int) -> tuple | None:
     """What :func:`torchpvs.compiled_load.load_work` reads, batched: the compact index of every
     padded coordinate, the padded mask, the pose constants, the tip force and the Magnus
-    tables; zero forces (and placeholder shapes) without a load."""
-    npt = np.float64 if dtype == torch.float64 else np.float32
+    tables; None without a load. None is a type of its own to numba, whose branch pruning then
+    removes the load terms from the unloaded specializations: they are compiled only once a
+    loaded problem comes (the first use of the default, unloaded solve does not pay for them)."""
     if not prob.with_load:
-        z = np.zeros((B, 1), dtype=npt)
-        return (np.full((B, 1), -1, dtype=np.int64), z, z, z, np.zeros((B, 1), dtype=np.int64),
-                z, np.zeros((B, 1, 1), dtype=npt), np.zeros((B, 1, 1, 1, 2), dtype=npt),
-                np.zeros((B, 1, 1, 1), dtype=npt), np.zeros((B, 3), dtype=npt),
-                np.zeros((1, 1), dtype=npt), np.zeros((1, 1), dtype=npt))
+        return None
     lay, const, tab = prob.lay, prob.maps.pose, prob.tab
     cidx = _get(prob.maps, "cidx")
     nq = lay.qmask.shape[-1]
@@ -448,9 +445,12 @@ def total(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb
           g, H):
     """:func:`evaluate` (orders 0-2) plus the potential ``-F . p_tip`` of the element's dead tip
     force and its derivatives (``ld``: :func:`element` of :func:`_load_arrays`;
-    :func:`torchpvs.compiled_load.load_work`); nothing is added for a zero force."""
+    :func:`torchpvs.compiled_load.load_work`); nothing is added for a zero force or ``ld``
+    None."""
     U = evaluate(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb, order,
                  g, H)
+    if ld is None:
+        return U
     F = ld[9]
     if F[0] == 0.0 and F[1] == 0.0 and F[2] == 0.0:
         return U
@@ -854,14 +854,29 @@ def _section_parallel(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gco
 def newton_into(b, q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb, LD,
                 Lc, consts, minimize, max_iter, H, g, U, res, it, conv, verdict):
     out = np.empty(5, dtype=q.dtype)
-    newton_one(q[b], qm[b], psi0[b], bvec[b], h[b], us[b], EIw[b], EIws[b], GJw[b], Hsec[b],
-               guide[b], gconst[b], phi, Qb, element(LD, b), Lc[b], consts, minimize, max_iter,
-               H[b], g[b], out)
+    # two call sites, not an optional value: numba prunes the one a None LD cannot take
+    if LD is None:
+        newton_one(q[b], qm[b], psi0[b], bvec[b], h[b], us[b], EIw[b], EIws[b], GJw[b],
+                   Hsec[b], guide[b], gconst[b], phi, Qb, None, Lc[b], consts, minimize,
+                   max_iter, H[b], g[b], out)
+    else:
+        newton_one(q[b], qm[b], psi0[b], bvec[b], h[b], us[b], EIw[b], EIws[b], GJw[b],
+                   Hsec[b], guide[b], gconst[b], phi, Qb, element(LD, b), Lc[b], consts,
+                   minimize, max_iter, H[b], g[b], out)
     U[b] = out[0]
     res[b] = out[1]
     it[b] = int(out[2])
     conv[b] = out[3] > 0.5
     verdict[b] = int(out[4])
+
+
+@_jit
+def step_at(b, q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb, LD, tiny):
+    if LD is None:     # (see newton_into)
+        return step_one(q[b], qm[b], psi0[b], bvec[b], h[b], us[b], EIw[b], EIws[b], GJw[b],
+                        Hsec[b], guide[b], gconst[b], phi, Qb, None, tiny)
+    return step_one(q[b], qm[b], psi0[b], bvec[b], h[b], us[b], EIw[b], EIws[b], GJw[b],
+                    Hsec[b], guide[b], gconst[b], phi, Qb, element(LD, b), tiny)
 
 
 # The batch loops: serial, and across numba's threads (prange) for larger batches.
@@ -885,16 +900,16 @@ def _newton_parallel(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gcon
 def _step_serial(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb,
                  LD, consts, ok):
     for b in range(q.shape[0]):
-        ok[b] = step_one(q[b], qm[b], psi0[b], bvec[b], h[b], us[b], EIw[b], EIws[b], GJw[b],
-                         Hsec[b], guide[b], gconst[b], phi, Qb, element(LD, b), consts[3])
+        ok[b] = step_at(b, q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi,
+                        Qb, LD, consts[3])
 
 
 @njit(cache=True, nogil=True, parallel=True)
 def _step_parallel(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb,
                    LD, consts, ok):
     for b in prange(q.shape[0]):
-        ok[b] = step_one(q[b], qm[b], psi0[b], bvec[b], h[b], us[b], EIw[b], EIws[b], GJw[b],
-                         Hsec[b], guide[b], gconst[b], phi, Qb, element(LD, b), consts[3])
+        ok[b] = step_at(b, q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi,
+                        Qb, LD, consts[3])
 
 
 @_jit
