@@ -33,7 +33,7 @@ import warnings
 import numpy as np
 import torch
 
-from .compiled_load import load_work
+from .compiled_load import load_work, mat4
 from .mechanics import compact_q, expand_q
 from .newton import NewtonResult, Problem, tolerance
 
@@ -1161,12 +1161,7 @@ def right_multiply_exp(g, om, small, tmp):
     E[3, 1] = 0.0
     E[3, 2] = 0.0
     E[3, 3] = 1.0
-    for i in range(4):
-        for j in range(4):
-            acc = 0.0
-            for k in range(4):
-                acc += g[i, k] * E[k, j]
-            tmp[i, j] = acc
+    mat4(g, E, tmp)
     g[:, :] = tmp
 
 

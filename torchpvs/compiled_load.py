@@ -93,7 +93,8 @@ def _qv(qc, inv, qm, f):
 
 
 @_jit
-def _mat4(A, B, out):
+def mat4(A, B, out):
+    """out = A @ B for 4 x 4 arrays (out must not alias A or B)."""
     for i in range(4):
         for j in range(4):
             acc = 0.0
@@ -332,7 +333,7 @@ def load_work(qc, inv, qm, psi0b, D, sec, h, presc_inc, us_held, presc_local, F,
     for k in range(K):
         Pprev[k] = P
         exp_jets(Om[k], E[k], dE[k], d2E[k])
-        _mat4(Pprev[k], E[k], P)
+        mat4(Pprev[k], E[k], P)
     W = F[0] * P[0, 3] + F[1] * P[1, 3] + F[2] * P[2, 3]
     if not der:
         return W
@@ -348,7 +349,7 @@ def load_work(qc, inv, qm, psi0b, D, sec, h, presc_inc, us_held, presc_local, F,
     Pk = np.empty((4, 4), dtype=dt)
     for k in range(K):
         Rp = Pprev[k, :3, :3]
-        _mat4(Pprev[k], E[k], Pk)
+        mat4(Pprev[k], E[k], Pk)
         for i in range(3):       # the tip in frame k
             acc = 0.0
             for l in range(3):
