@@ -119,7 +119,10 @@ def inverse_kinematics(scene: Scene | str, goal, *, starts: int = 8, tol: float 
     if not (isinstance(restarts, int) and not isinstance(restarts, bool) and restarts >= 0):
         raise ValueError(f"restarts must be an integer >= 0, got {restarts!r}")
     dt = torch.float64
-    goal = torch.as_tensor(goal, dtype=dt)
+    # The device: the options' if set, else the goal's (a CUDA goal solves on CUDA).
+    dev = torch.device(options.device) if options is not None and options.device is not None \
+        else (goal.device if isinstance(goal, torch.Tensor) else torch.device("cpu"))
+    goal = torch.as_tensor(goal, dtype=dt, device=dev)
     goal = goal[None] if goal.ndim == 1 else goal
     if goal.ndim != 2 or goal.shape[-1] != 3 or not bool(torch.isfinite(goal).all()):
         raise ValueError(f"goal must be finite with shape (3,) or (G, 3), got "
@@ -129,13 +132,14 @@ def inverse_kinematics(scene: Scene | str, goal, *, starts: int = 8, tol: float 
                          "got (0, 3)")
     G, N, K = goal.shape[0], scene.n_tubes, starts
     opts = options or SolverOptions(order=2, n_magnus=8, compute_forces=False,
-                                    on_failure="ignore")
-    D_max = torch.tensor([t.length for t in scene.tubes], dtype=dt) - min_exposed
+                                    on_failure="ignore", device=dev)
+    D_max = torch.tensor([t.length for t in scene.tubes], dtype=dt, device=dev) - min_exposed
     if bool((D_max < 0).any()):
         raise ValueError(f"min_exposed ({min_exposed} m) exceeds a tube's length")
 
     def rows(x, name, field):
-        t = torch.as_tensor(x if x is not None else getattr(scene.actuation, name), dtype=dt)
+        t = torch.as_tensor(x if x is not None else getattr(scene.actuation, name), dtype=dt,
+                            device=dev)
         t = t[None] if t.ndim == 1 else t
         if t.ndim != 2 or t.shape[-1] != N or t.shape[0] not in (1, G):
             raise ValueError(f"{field} must have shape ({N},) or ({G}, {N}) (one row per "
@@ -173,18 +177,19 @@ def inverse_kinematics(scene: Scene | str, goal, *, starts: int = 8, tol: float 
         u, a = _random_starts(seed + 1, goal, D0, A0, restarts)
         pool_D = _project(torch.cummax(u * D_max, -1).values, D_max)
         pool_A = (a * 2 - 1) * math.pi
-    used = torch.zeros(G, dtype=torch.long)                # restarts drawn per goal
-    stall = torch.zeros(B, dtype=torch.long)               # iterations without a 10 % fall
-    mark = torch.full((B,), math.inf, dtype=dt)            # the error that last fell 10 %
+    used = [0] * G                                         # restarts drawn per goal
+    stall = torch.zeros(B, dtype=torch.long, device=dev)   # iterations without a 10 % fall
+    mark = torch.full((B,), math.inf, dtype=dt, device=dev)  # the error that last fell 10 %
     kD, kA = D.clone(), A.clone()                          # best point of a replaced start
-    kerr = torch.full((B,), math.inf, dtype=dt)
+    kerr = torch.full((B,), math.inf, dtype=dt, device=dev)
     target = goal[:, None].expand(G, K, 3).reshape(B, 3)
-    s = torch.cat([torch.ones(N, dtype=dt), torch.full((N,), travel_scale, dtype=dt)])
-    lam = torch.full((B,), 1e-3, dtype=dt)
+    s = torch.cat([torch.ones(N, dtype=dt, device=dev),
+                   torch.full((N,), travel_scale, dtype=dt, device=dev)])
+    lam = torch.full((B,), 1e-3, dtype=dt, device=dev)
     q = None
-    err = torch.full((B,), math.inf, dtype=dt)
-    J = torch.zeros(B, 3, 2 * N, dtype=dt)
-    r = torch.zeros(B, 3, dtype=dt)
+    err = torch.full((B,), math.inf, dtype=dt, device=dev)
+    J = torch.zeros(B, 3, 2 * N, dtype=dt, device=dev)
+    r = torch.zeros(B, 3, dtype=dt, device=dev)
     xD, xA = D, A                                       # accepted actuations
     deadline = None if time_limit is None else t_start + time_limit
     timed_out = False
@@ -214,7 +219,7 @@ def inverse_kinematics(scene: Scene | str, goal, *, starts: int = 8, tol: float 
         Js = J * s
         JJ = Js @ Js.transpose(1, 2)
         JJ = JJ + lam[:, None, None] * JJ.diagonal(dim1=-2, dim2=-1).mean(-1)[:, None, None] \
-            * torch.eye(3, dtype=dt) + 1e-18 * torch.eye(3, dtype=dt)
+            * torch.eye(3, dtype=dt, device=dev) + 1e-18 * torch.eye(3, dtype=dt, device=dev)
         step = s * (Js.transpose(1, 2) @ torch.linalg.solve(JJ, r[..., None]))[..., 0]
         dD, dA = step[:, :N], step[:, N:]
         cap = torch.maximum(dD.abs().amax(-1) / max_step[0],
@@ -241,9 +246,10 @@ def inverse_kinematics(scene: Scene | str, goal, *, starts: int = 8, tol: float 
               + travel_scale * (xA.reshape(G, K, N) - A0[:, None]).abs().sum(-1))
     score = torch.where(ok.reshape(G, K), travel, 1e6 * (1 + err.reshape(G, K)))
     best = score.argmin(-1)
-    idx = torch.arange(G) * K + best
+    goals = torch.arange(G, device=dev)
+    idx = goals * K + best
     return IKResult(insertion=xD[idx], rotation=xA[idx], tip=final.tip_position[idx],
-                    error=err[idx], solved=ok[idx], travel=travel[torch.arange(G), best],
+                    error=err[idx], solved=ok[idx], travel=travel[goals, best],
                     starts_solved=ok.reshape(G, K).sum(-1), timed_out=timed_out)
 
 
@@ -260,17 +266,17 @@ def _restart(scene, opts, deadline, stalled, K, used, restarts, pool, trial, sta
     for r in stalled.nonzero().flatten().tolist():      # few rows: a loop keeps the pool order
         g = r // K
         if used[g] < restarts:
-            rows.append((r, g, int(used[g])))
+            rows.append((r, g, used[g]))
             used[g] += 1
     if not rows:
         return q
-    r_idx = torch.tensor([r for r, _, _ in rows])
+    r_idx = torch.tensor([r for r, _, _ in rows], device=err.device)
     better = err[r_idx] < kerr[r_idx]
     kD[r_idx] = torch.where(better[:, None], xD[r_idx], kD[r_idx])
     kA[r_idx] = torch.where(better[:, None], xA[r_idx], kA[r_idx])
     kerr[r_idx] = torch.minimum(err[r_idx], kerr[r_idx])
-    g_idx = torch.tensor([g for _, g, _ in rows])
-    p_idx = torch.tensor([p for _, _, p in rows])
+    g_idx = torch.tensor([g for _, g, _ in rows], device=err.device)
+    p_idx = torch.tensor([p for _, _, p in rows], device=err.device)
     D[r_idx] = xD[r_idx] = pool[0][g_idx, p_idx]
     A[r_idx] = xA[r_idx] = pool[1][g_idx, p_idx]
     err[r_idx] = math.inf
@@ -306,7 +312,8 @@ def _random_starts(seed: int, goal: torch.Tensor, D0: torch.Tensor, A0: torch.Te
         gen = torch.Generator().manual_seed(int.from_bytes(digest, "little") >> 1)
         u[g] = torch.rand(m, N, generator=gen, dtype=D0.dtype)
         a[g] = torch.rand(m, N, generator=gen, dtype=D0.dtype)
-    return u, a
+    # drawn on the CPU's generator on every device: the same starts wherever the solve runs
+    return u.to(D0.device), a.to(D0.device)
 
 
 def _project(D: torch.Tensor, D_max: torch.Tensor) -> torch.Tensor:
