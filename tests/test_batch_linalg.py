@@ -46,3 +46,15 @@ def test_spd_solve_flags_the_elements_that_are_not_positive_definite(monkeypatch
     good = expected.nonzero().flatten()
     ref = torch.linalg.solve(H[good], rhs[good][..., None])[..., 0]
     torch.testing.assert_close(x[good], ref, rtol=1e-12, atol=1e-14)
+
+
+def test_chunks_are_cache_sized_on_the_cpu_and_whole_batches_elsewhere():
+    """The chunk rule (batch_linalg.chunk_rows): CHUNK_BYTES of n x n matrices on the CPU,
+    GPU_CHUNK_BYTES on any other device (a meta tensor stands in for a GPU's here; on an H200
+    the CPU's chunks made batches of 16k-131k elements 5.7-19x slower, docs/performance.md)."""
+    n = 26
+    cpu = torch.zeros(1, dtype=torch.float64)
+    other = torch.zeros(1, dtype=torch.float32, device="meta")
+    assert batch_linalg.chunk_rows(n, cpu) == batch_linalg.CHUNK_BYTES // (n * n * 8)
+    assert batch_linalg.chunk_rows(n, other) == batch_linalg.GPU_CHUNK_BYTES // (n * n * 4)
+    assert batch_linalg.chunk_rows(1000, cpu) == 16        # never fewer than 16 rows

@@ -12,10 +12,20 @@ from __future__ import annotations
 
 import torch
 
-__all__ = ["CHUNK_BYTES", "active_index", "chunked", "compact", "compact_scaled", "expand",
-           "spd_solve", "take"]
+__all__ = ["CHUNK_BYTES", "GPU_CHUNK_BYTES", "active_index", "chunk_rows", "chunked", "compact",
+           "compact_scaled", "expand", "spd_solve", "take"]
 
 CHUNK_BYTES = 4 << 20    # Hessian bytes per chunk of a large batch (cache-sized working set)
+# On a GPU a chunk is one launch per pass: chunks there only bound the working memory.
+GPU_CHUNK_BYTES = 1 << 30
+
+
+def chunk_rows(n: int, t: torch.Tensor) -> int:
+    """Rows per chunk of a batch of ``n x n`` matrices of ``t``'s dtype on ``t``'s device:
+    ``CHUNK_BYTES`` on the CPU (the per-element passes are memory-bound: a cache-sized working
+    set), ``GPU_CHUNK_BYTES`` elsewhere (the whole batch in one launch up to that size)."""
+    budget = CHUNK_BYTES if t.device.type == "cpu" else GPU_CHUNK_BYTES
+    return max(16, budget // (n * n * t.element_size()))
 
 
 def active_index(qmask: torch.Tensor) -> torch.Tensor | None:
@@ -73,7 +83,7 @@ def chunked(fn, q: torch.Tensor, prob, *batched: torch.Tensor, **kwargs) -> tupl
     are independent, and the dense per-element passes are memory-bound at large B. ``prob``
     is a :class:`torchpvs.newton.Problem` (its ``subset`` gives a chunk's rows)."""
     B, nq = q.shape
-    chunk = max(16, CHUNK_BYTES // (nq * nq * q.element_size()))
+    chunk = chunk_rows(nq, q)
     if B <= 1.5 * chunk:
         return tuple(fn(q, prob, *batched, **kwargs))
     parts = []
@@ -89,7 +99,7 @@ def spd_solve(H: torch.Tensor, rhs: torch.Tensor) -> tuple[torch.Tensor, torch.T
     slower). Returns ``(x (B, n), ok (B,))``; ``ok`` is False where ``H`` is not positive
     definite (``x`` is then not meaningful)."""
     B, n = rhs.shape
-    chunk = max(16, CHUNK_BYTES // (n * n * H.element_size()))
+    chunk = chunk_rows(n, H)
     x = torch.empty_like(rhs)
     fail = torch.empty(B, dtype=torch.int32, device=rhs.device)
     for s in range(0, B, chunk):
