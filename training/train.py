@@ -390,8 +390,9 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--eval-freq", type=int, default=20_000,
                    help="evaluate every this many env steps (<= 0: never)")
     p.add_argument("--eval-episodes", type=int, default=200,
-                   help="episodes per evaluation (>= 200 to choose checkpoints: a success "
-                   "rate's sampling error is then about +-0.03)")
+                   help="episodes per evaluation (a success rate's sampling error is about "
+                   "+-0.03 at 200, +-0.016 at 500: late checkpoints that differ by 1-3 points "
+                   "need 500, or a separate training.evaluate --seed run, to be ranked)")
     p.add_argument("--out", default="runs", help="parent folder of the run folder")
     p.add_argument("--threads", type=int, default=1, help="torch threads (1 is fastest here)")
     p.add_argument("--max-minutes", type=float, default=None,
