@@ -87,6 +87,8 @@ def inverse_kinematics(scene: Scene | str, goal, *, starts: int = 8, tol: float 
         restarts: fresh seeded random starts per goal for starts that stall (default
             ``starts``; 0: none).
         options: solver options of the equilibria (default ``order=2, n_magnus=8``, no forces).
+            The solves run on ``options.device`` if set, else on the goal's device (a CUDA
+            ``goal`` tensor solves on the GPU); the result's tensors are on that device.
         time_limit: [s] wall-clock bound on the whole call (default 120 s; ``None``: none):
             checked before every iteration, and every solve is bounded by what is left.
     """
