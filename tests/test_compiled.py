@@ -25,7 +25,15 @@ from hypothesis import HealthCheck, given, settings
 import torchpvs as tp
 from torchpvs import SolverOptions, compiled
 from torchpvs.kernel import COMPILED, EAGER, KERNELS
-from torchpvs.testing import D1_FIG3, SWEEPS, fig3, nested_scene, random_scene, scene_strategy
+from torchpvs.testing import (
+    D1_FIG3,
+    SWEEPS,
+    assert_same_equilibria,
+    fig3,
+    nested_scene,
+    random_scene,
+    scene_strategy,
+)
 
 DT = torch.float64
 pytestmark = pytest.mark.skipif(not compiled.available(), reason="numba is not installed")
@@ -40,17 +48,7 @@ def both(scene, options: SolverOptions | None = None, **kw):
 
 def assert_same(eager, comp, tip_tol=1e-12, force_tol=1e-9):
     """Same equilibria: tips, forces, flags, iterations, verdicts."""
-    assert torch.equal(eager.converged, comp.converged)
-    assert torch.equal(eager.iterations, comp.iterations)
-    assert torch.equal(eager.stable, comp.stable)
-    assert float((eager.tip_position - comp.tip_position).abs().max()) <= tip_tol
-    for a, b in ((eager.actuation_forces, comp.actuation_forces),
-                 (eager.actuation_torques, comp.actuation_torques)):
-        both_nan = torch.isnan(a) & torch.isnan(b)
-        assert torch.equal(torch.isnan(a), torch.isnan(b))
-        assert float((a - b).abs()[~both_nan].max()) <= force_tol
-    ea, eb = eager.min_stiffness_eigenvalue, comp.min_stiffness_eigenvalue
-    assert torch.allclose(ea, eb, rtol=1e-6, atol=1e-12, equal_nan=True)
+    assert_same_equilibria(eager, comp, tip_tol, force_tol)
 
 
 @pytest.mark.parametrize("sweep", sorted(SWEEPS))

@@ -24,7 +24,7 @@ import torch
 
 import torchpvs as tp
 from torchpvs import SolverOptions
-from torchpvs.testing import SWEEPS, fig3, nested_scene, random_scene
+from torchpvs.testing import SWEEPS, assert_same_equilibria, fig3, nested_scene, random_scene
 
 # TORCHPVS_TEST_DEVICES (comma-separated, e.g. "cpu" or "cuda:1") replaces the default; "cpu"
 # checks this module itself on a machine without a GPU (the CPU's default, compiled kernel
@@ -47,22 +47,13 @@ def on(device, scene, dtype=torch.float64, **kw):
 
 
 def assert_same(cpu, dev, device, tip_tol=1e-12, force_tol=1e-9):
-    assert dev.tip_position.device.type == torch.device(device).type
+    """Every output on ``device``, the same order, and the same equilibria
+    (:func:`torchpvs.testing.assert_same_equilibria`)."""
     for name in ("tip_position", "actuation_forces", "actuation_torques", "converged",
                  "iterations", "stable", "min_stiffness_eigenvalue"):
         assert getattr(dev, name).device.type == torch.device(device).type, name
-    assert torch.equal(cpu.converged, dev.converged.cpu())
-    assert torch.equal(cpu.iterations, dev.iterations.cpu())
-    assert torch.equal(cpu.stable, dev.stable.cpu())
     assert cpu.order == dev.order
-    assert float((cpu.tip_position - dev.tip_position.cpu()).abs().max()) <= tip_tol
-    for a, b in ((cpu.actuation_forces, dev.actuation_forces.cpu()),
-                 (cpu.actuation_torques, dev.actuation_torques.cpu())):
-        assert torch.equal(torch.isnan(a), torch.isnan(b))
-        ok = ~torch.isnan(a)
-        assert float((a - b).abs()[ok].max()) <= force_tol
-    assert torch.allclose(cpu.min_stiffness_eigenvalue, dev.min_stiffness_eigenvalue.cpu(),
-                          rtol=1e-6, atol=1e-12, equal_nan=True)
+    assert_same_equilibria(cpu, dev, tip_tol, force_tol)
 
 
 @pytest.mark.parametrize("sweep", sorted(SWEEPS))

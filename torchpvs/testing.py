@@ -162,6 +162,28 @@ def matched_reference(scene: Scene, pvs, tol: float = 1e-10, seed: int = 0, max_
     return None
 
 
+def assert_same_equilibria(a, b, tip_tol: float = 1e-12, force_tol: float = 1e-9) -> None:
+    """Assert that two :class:`~torchpvs.Equilibrium` of the same problem are the same
+    equilibria (two kernels, or two devices: ``b`` is compared on ``a``'s device): the same
+    convergence flags, iteration counts and stability verdicts, tips within ``tip_tol`` [m],
+    actuation forces and torques within ``force_tol`` [N, N·m] (NaN where the other is NaN),
+    and minimum stiffness eigenvalues within 1e-6 relative."""
+    dev = a.tip_position.device
+    def at(t):
+        return t.to(dev)
+    assert torch.equal(a.converged, at(b.converged))
+    assert torch.equal(a.iterations, at(b.iterations))
+    assert torch.equal(a.stable, at(b.stable))
+    assert float((a.tip_position - at(b.tip_position)).abs().max()) <= tip_tol
+    for x, y in ((a.actuation_forces, at(b.actuation_forces)),
+                 (a.actuation_torques, at(b.actuation_torques))):
+        assert torch.equal(torch.isnan(x), torch.isnan(y))
+        ok = ~torch.isnan(x)
+        assert float((x - y).abs()[ok].max()) <= force_tol
+    assert torch.allclose(a.min_stiffness_eigenvalue, at(b.min_stiffness_eigenvalue), rtol=1e-6,
+                          atol=1e-12, equal_nan=True)
+
+
 @contextlib.contextmanager
 def one_thread():
     """Context manager: one torch thread (tiny solves spin-wait badly on a busy 2-core box)."""
