@@ -36,30 +36,9 @@ except ImportError:      # pragma: no cover - numba is a dependency; see torchpv
 
 _jit = njit(cache=True, nogil=True)
 
-# a jet: value, gradient (6), Hessian (6 x 6 row-major) in the twist (wx, wy, wz, vx, vy, vz)
+# a jet: value, gradient (6), Hessian (6 x 6 row-major, upper triangle used) in the twist
+# (wx, wy, wz, vx, vy, vz)
 _NJ = 43
-
-
-@_jit
-def _jmul(x, y, o):
-    o[0] = x[0] * y[0]
-    for i in range(6):
-        o[1 + i] = x[0] * y[1 + i] + y[0] * x[1 + i]
-    for i in range(6):
-        for j in range(6):
-            o[7 + 6 * i + j] = (x[0] * y[7 + 6 * i + j] + y[0] * x[7 + 6 * i + j]
-                                + x[1 + i] * y[1 + j] + y[1 + i] * x[1 + j])
-
-
-@_jit
-def _jfun(x, f0, f1, f2, o):
-    """o = f(x) for a scalar function with f(x0) = f0, f'(x0) = f1, f''(x0) = f2."""
-    o[0] = f0
-    for i in range(6):
-        o[1 + i] = f1 * x[1 + i]
-    for i in range(6):
-        for j in range(6):
-            o[7 + 6 * i + j] = f1 * x[7 + 6 * i + j] + f2 * x[1 + i] * x[1 + j]
 
 
 @_jit
@@ -83,6 +62,56 @@ def _series(s, shift):
         sign = -sign
         fact *= (2 * k + shift + 1) * (2 * k + shift + 2)
     return f0, f1, f2
+
+
+@_jit
+def _series_value(s, shift):
+    """:func:`_series`'s value alone, by the same operations (bit for bit)."""
+    f0 = 0.0
+    fact = 1.0
+    for i in range(2, shift + 1):
+        fact *= i
+    sign = 1.0
+    for k in range(12):
+        f0 += sign / fact * s ** k
+        sign = -sign
+        fact *= (2 * k + shift + 1) * (2 * k + shift + 2)
+    return f0
+
+
+@_jit
+def exp_value(om, E):
+    """``E = exp(om)`` (4 x 4) alone: :func:`exp_jets`' value part by the same operations in
+    the same order (bit for bit), without its derivatives; what the line search's energy
+    evaluations need (``order = 0``)."""
+    w0, w1, w2, v0, v1, v2 = om[0], om[1], om[2], om[3], om[4], om[5]
+    s = w0 * w0 + w1 * w1 + w2 * w2
+    if s < 1.0:
+        A = _series_value(s, 1)
+        B = _series_value(s, 2)
+        C = _series_value(s, 3)
+    else:
+        t = math.sqrt(s)
+        A = math.sin(t) / t
+        B = (1 - math.cos(t)) / s
+        C = (1 - A) / s
+    E[0, 0] = B * (w0 * w0 - s) + 1.0
+    E[1, 1] = B * (w1 * w1 - s) + 1.0
+    E[2, 2] = B * (w2 * w2 - s) + 1.0
+    E[0, 1] = B * (w0 * w1) - A * w2
+    E[1, 0] = B * (w0 * w1) + A * w2
+    E[0, 2] = B * (w0 * w2) + A * w1
+    E[2, 0] = B * (w0 * w2) - A * w1
+    E[1, 2] = B * (w1 * w2) - A * w0
+    E[2, 1] = B * (w1 * w2) + A * w0
+    wv = w0 * v0 + w1 * v1 + w2 * v2
+    E[0, 3] = (v0 + B * (w1 * v2 - w2 * v1)) + C * (w0 * wv - s * v0)
+    E[1, 3] = (v1 + B * (w2 * v0 - w0 * v2)) + C * (w1 * wv - s * v1)
+    E[2, 3] = (v2 + B * (w0 * v1 - w1 * v0)) + C * (w2 * wv - s * v2)
+    E[3, 0] = 0.0
+    E[3, 1] = 0.0
+    E[3, 2] = 0.0
+    E[3, 3] = 1.0
 
 
 @_jit
@@ -127,85 +156,143 @@ def _exp_coefficients(s):
     return a0, a1, a2, b0, b1, b2, c0, c1, c2
 
 
+# Jets with the Hessian's upper triangle only (entries 7 + 6 a + b, a <= b; the lower ones are
+# never written, so a zeroed buffer keeps them zero): the exponential below needs 15 general
+# products and 9 by a single variable, instead of 36 general full ones.
 @_jit
-def exp_jets(om, E, dE, d2E):
+def _jmul_u(x, y, o):
+    """o = x y."""
+    x0 = x[0]
+    y0 = y[0]
+    o[0] = x0 * y0
+    for a in range(6):
+        o[1 + a] = x0 * y[1 + a] + y0 * x[1 + a]
+    for a in range(6):
+        xa = x[1 + a]
+        ya = y[1 + a]
+        for b in range(a, 6):
+            k = 7 + 6 * a + b
+            o[k] = x0 * y[k] + y0 * x[k] + xa * y[1 + b] + ya * x[1 + b]
+
+
+@_jit
+def _jmul_var(x, vi, i, o):
+    """o = x om_i, ``vi`` the value of the variable ``om_i``."""
+    x0 = x[0]
+    o[0] = x0 * vi
+    for a in range(6):
+        o[1 + a] = vi * x[1 + a]
+    o[1 + i] += x0
+    for a in range(6):
+        for b in range(a, 6):
+            o[7 + 6 * a + b] = vi * x[7 + 6 * a + b]
+    for a in range(i + 1):
+        o[7 + 6 * a + i] += x[1 + a]
+    for b in range(i, 6):
+        o[7 + 6 * i + b] += x[1 + b]
+
+
+@_jit
+def _jfun_u(x, f0, f1, f2, o):
+    """o = f(x) for a scalar function with f(x0) = f0, f'(x0) = f1, f''(x0) = f2."""
+    o[0] = f0
+    for a in range(6):
+        o[1 + a] = f1 * x[1 + a]
+    for a in range(6):
+        for b in range(a, 6):
+            o[7 + 6 * a + b] = f1 * x[7 + 6 * a + b] + f2 * x[1 + a] * x[1 + b]
+
+
+@_jit
+def _jbilinear(o, x, i, y, j, sign):
+    """o += sign om_i om_j (``x``, ``y`` their values; i != j)."""
+    o[0] += sign * (x * y)
+    o[1 + i] += sign * y
+    o[1 + j] += sign * x
+    a, b = (i, j) if i < j else (j, i)
+    o[7 + 6 * a + b] += sign
+
+
+@_jit
+def exp_jets(om, E, dE, d2E, J):
     """``E = exp(om)`` (4 x 4, om = (omega, v)) into E, its derivatives ``dE[a] = dE/dom_a``
     (6, 4, 4) and ``d2E[a, b]`` (6, 6, 4, 4): ``R = I + A W + B W^2``, ``t = v + B (w x v) +
-    C (w (w.v) - |w|^2 v)`` (W = [w]x), by jets."""
-    dt = om.dtype
-    var = np.zeros((6, _NJ), dtype=dt)
-    for i in range(6):
-        var[i, 0] = om[i]
-        var[i, 1 + i] = 1.0
-    ww = np.zeros((3, 3, _NJ), dtype=dt)
-    for i in range(3):
-        for j in range(i, 3):
-            _jmul(var[i], var[j], ww[i, j])
-            if j != i:
-                ww[j, i, :] = ww[i, j]
-    s = ww[0, 0] + ww[1, 1] + ww[2, 2]
+    C (w (w.v) - |w|^2 v)`` (W = [w]x), by jets; ``J`` (9, 43) zeroed scratch. The value
+    part is :func:`exp_value`'s arithmetic, operation for operation."""
+    w0, w1, w2 = om[0], om[1], om[2]
+    v0, v1, v2 = om[3], om[4], om[5]
+    s, Aj, Bj, Cj, wv, t1, t2, t3, ent = J[0], J[1], J[2], J[3], J[4], J[5], J[6], J[7], J[8]
+    s[:] = 0.0
+    s[0] = w0 * w0 + w1 * w1 + w2 * w2
+    for a in range(3):
+        s[1 + a] = 2.0 * om[a]
+        s[7 + 7 * a] = 2.0
     a0, a1, a2, b0, b1, b2, c0, c1, c2 = _exp_coefficients(s[0])
-    A = np.empty(_NJ, dtype=dt)
-    Bj = np.empty(_NJ, dtype=dt)
-    Cj = np.empty(_NJ, dtype=dt)
-    _jfun(s, a0, a1, a2, A)
-    _jfun(s, b0, b1, b2, Bj)
-    _jfun(s, c0, c1, c2, Cj)
-    tmp = np.empty(_NJ, dtype=dt)
-    ent = np.zeros((3, 4, _NJ), dtype=dt)
-    # R = I + A [w]x + B (w w^T - s I)
+    _jfun_u(s, a0, a1, a2, Aj)
+    _jfun_u(s, b0, b1, b2, Bj)
+    _jfun_u(s, c0, c1, c2, Cj)
+    E[:, :] = 0.0
+    E[3, 3] = 1.0
+    dE[:, 3, :] = 0.0
+    d2E[:, :, 3, :] = 0.0
+    # R = I + B (w w^T - s I) + A [w]x; [w]x: (0,1) -wz, (0,2) wy, (1,0) wz, (1,2) -wx,
+    # (2,0) -wy, (2,1) wx
     for i in range(3):
         for j in range(3):
-            w2 = ww[i, j].copy()
+            t1[:] = 0.0
             if i == j:
-                w2 -= s
-            _jmul(Bj, w2, tmp)
-            ent[i, j, :] = tmp
+                t1[0] = om[i] * om[i] - s[0]
+                t1[1 + i] = 2.0 * om[i]
+                t1[7 + 7 * i] = 2.0
+                for c in range(1, _NJ):
+                    t1[c] -= s[c]
+            else:
+                _jbilinear(t1, om[i], i, om[j], j, 1.0)
+            _jmul_u(Bj, t1, ent)
             if i == j:
-                ent[i, j, 0] += 1.0
-    # [w]x entries: (0,1) -wz, (0,2) wy, (1,0) wz, (1,2) -wx, (2,0) -wy, (2,1) wx
-    _jmul(A, var[2], tmp)
-    ent[0, 1, :] -= tmp
-    ent[1, 0, :] += tmp
-    _jmul(A, var[1], tmp)
-    ent[0, 2, :] += tmp
-    ent[2, 0, :] -= tmp
-    _jmul(A, var[0], tmp)
-    ent[1, 2, :] -= tmp
-    ent[2, 1, :] += tmp
+                ent[0] += 1.0
+            else:
+                k = 3 - i - j
+                sign = 1.0 if (j - i) % 3 == 2 else -1.0
+                _jmul_var(Aj, om[k], k, t2)
+                for c in range(_NJ):
+                    ent[c] += sign * t2[c]
+            _jet_out(ent, i, j, E, dE, d2E)
     # t = v + B (w x v) + C (w (w.v) - s v)
-    wv = np.zeros(_NJ, dtype=dt)
-    for i in range(3):
-        _jmul(var[i], var[3 + i], tmp)
-        wv += tmp
-    cross = np.zeros((3, _NJ), dtype=dt)
+    wv[:] = 0.0
+    _jbilinear(wv, w0, 0, v0, 3, 1.0)
+    _jbilinear(wv, w1, 1, v1, 4, 1.0)
+    _jbilinear(wv, w2, 2, v2, 5, 1.0)
+    wv[0] = w0 * v0 + w1 * v1 + w2 * v2
     for i in range(3):
         j = (i + 1) % 3
         k = (i + 2) % 3
-        _jmul(var[j], var[3 + k], tmp)
-        cross[i] += tmp
-        _jmul(var[k], var[3 + j], tmp)
-        cross[i] -= tmp
-    inner = np.empty(_NJ, dtype=dt)
-    t2 = np.empty(_NJ, dtype=dt)
-    for i in range(3):
-        _jmul(var[i], wv, inner)
-        _jmul(s, var[3 + i], t2)
-        inner -= t2
-        _jmul(Cj, inner, t2)
-        _jmul(Bj, cross[i], tmp)
-        ent[i, 3, :] = var[3 + i] + tmp + t2
-    E[:, :] = 0.0
-    dE[:, :, :] = 0.0
-    d2E[:, :, :, :] = 0.0
-    E[3, 3] = 1.0
-    for i in range(3):
-        for j in range(4):
-            E[i, j] = ent[i, j, 0]
-            for a in range(6):
-                dE[a, i, j] = ent[i, j, 1 + a]
-                for b in range(6):
-                    d2E[a, b, i, j] = ent[i, j, 7 + 6 * a + b]
+        t1[:] = 0.0                                     # cross_i = w_j v_k - w_k v_j
+        _jbilinear(t1, om[j], j, om[3 + k], 3 + k, 1.0)
+        _jbilinear(t1, om[k], k, om[3 + j], 3 + j, -1.0)
+        t1[0] = om[j] * om[3 + k] - om[k] * om[3 + j]
+        _jmul_u(Bj, t1, ent)
+        _jmul_var(wv, om[i], i, t2)                     # inner_i = w_i (w.v) - s v_i
+        _jmul_var(s, om[3 + i], 3 + i, t3)
+        for c in range(_NJ):
+            t2[c] -= t3[c]
+        _jmul_u(Cj, t2, t3)
+        ent[0] = (om[3 + i] + ent[0]) + t3[0]
+        for c in range(1, _NJ):
+            ent[c] += t3[c]
+        ent[1 + 3 + i] += 1.0
+        _jet_out(ent, i, 3, E, dE, d2E)
+
+
+@_jit
+def _jet_out(x, i, j, E, dE, d2E):
+    """Entry (i, j) of the exponential from its jet ``x``."""
+    E[i, j] = x[0]
+    for a in range(6):
+        dE[a, i, j] = x[1 + a]
+        for b in range(a, 6):
+            d2E[a, b, i, j] = x[7 + 6 * a + b]
+            d2E[b, a, i, j] = x[7 + 6 * a + b]
 
 
 @_jit
@@ -250,6 +337,8 @@ def load_work(qc, inv, qm, psi0b, D, sec, h, presc_inc, us_held, presc_local, F,
     Rh = np.zeros((K, 2, N, 2), dtype=dt)
     dpsi = np.zeros((K, 2, N, nc), dtype=dt) if der else np.zeros((1, 2, N, 1), dtype=dt)
     hsv = np.empty(K, dtype=dt)
+    cols = np.empty((K, nc) if der else (1, 1), dtype=np.int64)   # each step's columns
+    ncols = np.zeros(K, dtype=np.int64)
     k = 0
     for kk in range(Sp):
         off = N + sec[kk] * C * n
@@ -310,7 +399,25 @@ def load_work(qc, inv, qm, psi0b, D, sec, h, presc_inc, us_held, presc_local, F,
             Om[k, 5] = hs
             hsv[k] = hs
             if der:
+                # the coordinates this step's twist depends on (its section's strains, and
+                # through held tubes' angles the twists before it): every other column of its
+                # terms is exactly zero, so the loops below skip them (O(m^2 + m nc) per step
+                # in the Hessian, not O(nc^2))
+                mc = 0
                 for c in range(nc):
+                    nz = False
+                    for nd in range(2):
+                        if du[k, nd, 0, c] != 0.0 or du[k, nd, 1, c] != 0.0:
+                            nz = True
+                        for j in range(N):
+                            if held[k, nd, j] and dpsi[k, nd, j, c] != 0.0:
+                                nz = True
+                    if nz:
+                        cols[k, mc] = c
+                        mc += 1
+                ncols[k] = mc
+                for i2 in range(mc):
+                    c = cols[k, i2]
                     d1x, d1y = du[k, 0, 0, c], du[k, 0, 1, c]
                     d2x, d2y = du[k, 1, 0, c], du[k, 1, 1, c]
                     dOm[k, 0, c] = 0.5 * hs * (d1x + d2x)
@@ -327,16 +434,21 @@ def load_work(qc, inv, qm, psi0b, D, sec, h, presc_inc, us_held, presc_local, F,
     # the chain: frames before each step, the exponentials and their jets
     Pprev = np.empty((K, 4, 4), dtype=dt)
     E = np.empty((K, 4, 4), dtype=dt)
+    P = np.eye(4, dtype=dt)
+    if not der:
+        for k in range(K):
+            Pprev[k] = P
+            exp_value(Om[k], E[k])
+            mat4(Pprev[k], E[k], P)
+        return F[0] * P[0, 3] + F[1] * P[1, 3] + F[2] * P[2, 3]
     dE = np.empty((K, 6, 4, 4), dtype=dt)
     d2E = np.empty((K, 6, 6, 4, 4), dtype=dt)
-    P = np.eye(4, dtype=dt)
+    J = np.zeros((9, _NJ), dtype=dt)
     for k in range(K):
         Pprev[k] = P
-        exp_jets(Om[k], E[k], dE[k], d2E[k])
+        exp_jets(Om[k], E[k], dE[k], d2E[k], J)
         mat4(Pprev[k], E[k], P)
     W = F[0] * P[0, 3] + F[1] * P[1, 3] + F[2] * P[2, 3]
-    if not der:
-        return W
     p = P[:3, 3].copy()
     gOm = np.empty((K, 6), dtype=dt)
     z = np.empty((K, 6, 3), dtype=dt)         # dp/dOm_ka (base frame)
@@ -387,7 +499,8 @@ def load_work(qc, inv, qm, psi0b, D, sec, h, presc_inc, us_held, presc_local, F,
         for a in range(6):
             ga = gOm[k, a]
             if ga != 0.0:
-                for c in range(nc):
+                for i2 in range(ncols[k]):
+                    c = cols[k, i2]
                     gW[c] += ga * dOm[k, a, c]
     if order < 2:
         return W
@@ -396,32 +509,39 @@ def load_work(qc, inv, qm, psi0b, D, sec, h, presc_inc, us_held, presc_local, F,
     Ysuf = np.zeros((3, nc), dtype=dt)
     Cr = np.zeros((nc, nc), dtype=dt)
     for k in range(K - 1, -1, -1):
+        mc = ncols[k]
         # the step's own block: dOm^T MOm dOm
         for a in range(6):
-            for c in range(nc):
+            for i2 in range(mc):
+                c = cols[k, i2]
                 acc = 0.0
                 for b in range(6):
                     acc += MOm[k, a, b] * dOm[k, b, c]
                 T[a, c] = acc
         for a in range(6):
-            for c1 in range(nc):
+            for i1 in range(mc):
+                c1 = cols[k, i1]
                 d = dOm[k, a, c1]
                 if d != 0.0:
-                    for c2 in range(nc):
+                    for i2 in range(mc):
+                        c2 = cols[k, i2]
                         HW[c1, c2] += d * T[a, c2]
         # cross blocks with the later steps: A_k^T (sum_{l > k} Z_l x F), then Ysuf += Z_k x F
-        for i in range(3):
-            for c in range(nc):
-                acc = 0.0
-                for a in range(6):
-                    acc += w[k, a, i] * dOm[k, a, c]
-                Ak[i, c] = acc
-        for c1 in range(nc):
-            a0, a1, a2 = Ak[0, c1], Ak[1, c1], Ak[2, c1]
+        for i1 in range(mc):
+            c1 = cols[k, i1]
+            a0 = 0.0
+            a1 = 0.0
+            a2 = 0.0
+            for a in range(6):
+                d = dOm[k, a, c1]
+                a0 += w[k, a, 0] * d
+                a1 += w[k, a, 1] * d
+                a2 += w[k, a, 2] * d
             if a0 != 0.0 or a1 != 0.0 or a2 != 0.0:
                 for c2 in range(nc):
                     Cr[c1, c2] += a0 * Ysuf[0, c2] + a1 * Ysuf[1, c2] + a2 * Ysuf[2, c2]
-        for c in range(nc):
+        for i2 in range(mc):
+            c = cols[k, i2]
             z0 = 0.0
             z1 = 0.0
             z2 = 0.0
@@ -449,17 +569,21 @@ def load_work(qc, inv, qm, psi0b, D, sec, h, presc_inc, us_held, presc_local, F,
                 if not held[k, nd, j]:
                     continue
                 sj = -(cx * Rh[k, nd, j, 0] + cy * Rh[k, nd, j, 1])
-                for c1 in range(nc):
+                for i1 in range(mc):
+                    c1 = cols[k, i1]
                     d = sj * dpsi[k, nd, j, c1]
                     if d != 0.0:
-                        for c2 in range(nc):
+                        for i2 in range(mc):
+                            c2 = cols[k, i2]
                             HW[c1, c2] += d * dpsi[k, nd, j, c2]
         bk = kq * g2
         if bk != 0.0:
-            for c1 in range(nc):
+            for i1 in range(mc):
+                c1 = cols[k, i1]
                 a1x, a1y = du[k, 0, 0, c1], du[k, 0, 1, c1]
                 a2x, a2y = du[k, 1, 0, c1], du[k, 1, 1, c1]
-                for c2 in range(nc):
+                for i2 in range(mc):
+                    c2 = cols[k, i2]
                     HW[c1, c2] += bk * (a1x * du[k, 1, 1, c2] + a2y * du[k, 0, 0, c2]
                                         - a1y * du[k, 1, 0, c2] - a2x * du[k, 0, 1, c2])
     for c1 in range(nc):
