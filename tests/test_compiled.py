@@ -219,6 +219,42 @@ def test_the_compiled_load_terms_are_the_autograd_ones(case):
     assert (held > 0) == (case == "held")
 
 
+@pytest.mark.parametrize("case", ["fig3", "nested3"])
+def test_the_line_search_work_is_the_newton_work_bit_for_bit(case):
+    """The line search evaluates the work alone (order 0: compiled_load.exp_value, no jets) and
+    compares it with the energy of the Newton evaluation (order 2: the jets' values): the two
+    must be the same number, or Armijo tests could flip on round-off. Both are also the work
+    ``F . p_tip`` of the eager kernel's tip pose (mechanics.tip_pose, an independent
+    implementation of the Magnus chain) to 1e-14 relative."""
+    from torchpvs.compiled_load import load_work
+    from torchpvs.mechanics import compact_q, tip_pose
+    force = torch.tensor([0.2, -0.1, 0.3], dtype=DT)
+    sc = {"fig3": fig3(), "nested3": nested_scene(3, seed=1)}[case].with_load(
+        tip_force=force.tolist())
+    rot = torch.tensor(np.random.default_rng(1).uniform(-3, 3, (4, len(sc.tubes))), dtype=DT)
+    probs = _captured_problems(sc, rot, SolverOptions())
+    gen = torch.Generator().manual_seed(1)
+    checked = 0
+    for q, prob in probs[:3]:
+        B = q.shape[0]
+        qc = compact_q(q, prob.maps.cidx)
+        qc = qc + 0.05 * torch.randn(qc.shape, generator=gen, dtype=DT) * prob.maps.qmask
+        qp = torch.zeros_like(q).scatter(1, prob.maps.cidx, qc)
+        tip = tip_pose(qp, prob.lay, prob.tab, prob.maps.pose)[0]
+        LD = compiled._load_arrays(prob, DT, B)
+        nc = qc.shape[1]
+        for b in range(B):
+            gW, HW = np.empty(nc), np.empty((nc, nc))
+            args = (qc[b].numpy().copy(), *(a[b] for a in LD[:10]), LD[10], LD[11])
+            W0 = load_work(*args, 0, gW, HW)
+            W2 = load_work(*args, 2, gW, HW)
+            assert W0 == W2
+            W_ref = float(force @ tip[b])
+            assert abs(W0 - W_ref) <= 1e-14 * abs(W_ref)
+            checked += 1
+    assert checked >= 4
+
+
 def test_a_tip_force_in_float32_matches_the_eager_kernel_to_float32_precision():
     """float32 with a tip force: the compiled load terms run in float32 and converge where the
     eager kernel does, to its equilibrium within float32's resolution."""
