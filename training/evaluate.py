@@ -160,7 +160,27 @@ def summarize(res: dict[str, np.ndarray]) -> dict[str, float]:
     s["reachable_in_time_fraction"] = float(ok.mean())
     s["success@1mm_reachable_in_time"] = (float((res["final_error"][ok] <= TOLERANCES[0]).mean())
                                           if ok.any() else None)
+    s.update(miss_breakdown(res))
     return s
+
+
+def miss_breakdown(res: dict[str, np.ndarray]) -> dict[str, float]:
+    """How the episodes that end outside 1 mm miss, as fractions of all episodes (the first
+    four add up to the miss rate): ``miss_snapped`` (ended by a snap), ``miss_left_after_hit``
+    (within 1 mm at some step, outside at the end), ``miss_within_5mm`` and
+    ``miss_beyond_5mm`` (never within 1 mm; final error up to / beyond 5 mm), and, across
+    those, ``miss_not_reachable_in_time`` (the goal's sampled preimage is more travel steps
+    away than the episode has: see ``reachable_in_time_fraction``)."""
+    miss = res["final_error"] > TOLERANCES[0]
+    snap = res["snap"].astype(bool)
+    hit = res["first_hit"] > 0
+    near = res["final_error"] <= TOLERANCES[-1]
+    late = res["travel_steps"] > res.get("episode_steps", 100)
+    return {"miss_snapped": float((miss & snap).mean()),
+            "miss_left_after_hit": float((miss & ~snap & hit).mean()),
+            "miss_within_5mm": float((miss & ~snap & ~hit & near).mean()),
+            "miss_beyond_5mm": float((miss & ~snap & ~hit & ~near).mean()),
+            "miss_not_reachable_in_time": float((miss & late).mean())}
 
 
 def markdown_table(metrics: list[dict[str, dict]]) -> str:
@@ -407,6 +427,10 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--run-dir", action="append", default=[],
                    help="training run folder (learning curves; repeat for several runs)")
     p.add_argument("--out", default="runs/eval")
+    p.add_argument("--per-episode", action="store_true",
+                   help="also write OUT/episodes.json: every episode's final error [m], first "
+                        "hit and settle steps, snap and failure flags, goal and start tip [m], "
+                        "travel steps, saturation and effort, per policy (episode k is seed + k)")
     p.add_argument("--threads", type=int, default=1)
     p.add_argument("--table", nargs="+", metavar="METRICS_JSON",
                    help="print the markdown table of saved metrics.json files and exit")
@@ -461,6 +485,11 @@ def main(argv: list[str] | None = None) -> int:
             f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}" for k, v in s.items()),
             flush=True)
     (out / "metrics.json").write_text(json.dumps(summary, indent=2))
+    if args.per_episode:
+        (out / "episodes.json").write_text(json.dumps(
+            {"seed": args.seed, **{name: {k: np.asarray(v).tolist() for k, v in res.items()
+                                          if k not in ("traces", "episode_steps")}
+                                   for name, res in results.items()}}))
     paths = _figures(results, out, [Path(d) for d in args.run_dir])
     print(f"wrote {out / 'metrics.json'} and " + ", ".join(str(p) for p in paths))
     return 0

@@ -98,13 +98,18 @@ def test_train_200_steps_and_evaluate(tmp_path):
     out = tmp_path / "eval"
     code = evaluate.main(["--policy", f"agent={run / 'model.zip'}", "--baselines", "zero",
                           "--episodes", "2", "--batch", "2", "--out", str(out),
-                          "--run-dir", str(run)])
+                          "--run-dir", str(run), "--per-episode"])
     assert code == 0
     metrics = json.loads((out / "metrics.json").read_text())
     assert set(metrics) == {"agent", "zero"}
-    for m in metrics.values():
+    episodes = json.loads((out / "episodes.json").read_text())
+    assert episodes["seed"] == 12345
+    for name, m in metrics.items():
         assert 0 <= m["success@1mm"] <= m["success@2mm"] <= m["success@5mm"] <= 1
         assert m["episodes"] == 2 and 0 <= m["settled_fraction"] <= 1
+        # the per-episode file holds what the summary was computed from
+        e = np.array(episodes[name]["final_error"]) * 1e3
+        assert len(e) == 2 and math.isclose(float(np.median(e)), m["median_error_mm"])
     assert (out / "error_histogram.png").exists() and (out / "learning_curve.png").exists()
 
 
@@ -193,6 +198,24 @@ def test_metrics_on_a_known_rollout():
     np.testing.assert_allclose(np.median(res["final_error"]) * 1e3, s["median_error_mm"])
     res = rollout(_Scripted([np.ones((2, 4), np.float32)]), venv, 2, seed=3, progress=False)
     assert summarize(res)["saturation_fraction"] == 1.0
+
+
+def test_the_miss_breakdown_sorts_hand_built_episodes():
+    """Six episodes, one of each kind, counted by hand: a success, a snap, one that hit and
+    left, a near and a far miss that never hit, and a success whose goal was out of time's
+    reach (counted as reachable-late only if it missed)."""
+    from training.evaluate import miss_breakdown
+    res = {"final_error": np.array([0.5, 8.0, 1.5, 3.0, 40.0, 0.9]) * 1e-3,
+           "snap": np.array([0, 1, 0, 0, 0, 0]),
+           "first_hit": np.array([10, -1, 20, -1, -1, 30]),
+           "travel_steps": np.array([30.0, 50.0, 40.0, 60.0, 150.0, 120.0]),
+           "episode_steps": 100}
+    m = miss_breakdown(res)
+    assert m == {"miss_snapped": 1 / 6, "miss_left_after_hit": 1 / 6, "miss_within_5mm": 1 / 6,
+                 "miss_beyond_5mm": 1 / 6, "miss_not_reachable_in_time": 1 / 6}
+    # the four kinds partition the misses
+    miss = float((res["final_error"] > 1e-3).mean())
+    assert math.isclose(sum(v for k, v in m.items() if k != "miss_not_reachable_in_time"), miss)
 
 
 def test_tip_jacobian_matches_finite_differences():
