@@ -42,9 +42,9 @@ _NJ = 43
 
 
 @_jit
-def _series(s, shift):
-    """``f(s) = sum_k (-s)^k / (2k + shift)!`` and its first two derivatives in ``s`` (used for
-    ``s < 1``: 12 terms leave < 1e-20)."""
+def _series(s, shift, derivatives=True):
+    """``f(s) = sum_k (-s)^k / (2k + shift)!`` and (with ``derivatives``, else zeros) its first
+    two derivatives in ``s`` (used for ``s < 1``: 12 terms leave < 1e-20)."""
     f0 = 0.0
     f1 = 0.0
     f2 = 0.0
@@ -55,28 +55,13 @@ def _series(s, shift):
     for k in range(12):
         c = sign / fact
         f0 += c * s ** k
-        if k >= 1:
+        if derivatives and k >= 1:
             f1 += c * k * s ** (k - 1)
-        if k >= 2:
+        if derivatives and k >= 2:
             f2 += c * k * (k - 1) * s ** (k - 2)
         sign = -sign
         fact *= (2 * k + shift + 1) * (2 * k + shift + 2)
     return f0, f1, f2
-
-
-@_jit
-def _series_value(s, shift):
-    """:func:`_series`'s value alone, by the same operations (bit for bit)."""
-    f0 = 0.0
-    fact = 1.0
-    for i in range(2, shift + 1):
-        fact *= i
-    sign = 1.0
-    for k in range(12):
-        f0 += sign / fact * s ** k
-        sign = -sign
-        fact *= (2 * k + shift + 1) * (2 * k + shift + 2)
-    return f0
 
 
 @_jit
@@ -87,9 +72,9 @@ def exp_value(om, E):
     w0, w1, w2, v0, v1, v2 = om[0], om[1], om[2], om[3], om[4], om[5]
     s = w0 * w0 + w1 * w1 + w2 * w2
     if s < 1.0:
-        A = _series_value(s, 1)
-        B = _series_value(s, 2)
-        C = _series_value(s, 3)
+        A = _series(s, 1, False)[0]
+        B = _series(s, 2, False)[0]
+        C = _series(s, 3, False)[0]
     else:
         t = math.sqrt(s)
         A = math.sin(t) / t
@@ -293,6 +278,21 @@ def _jet_out(x, i, j, E, dE, d2E):
         for b in range(a, 6):
             d2E[a, b, i, j] = x[7 + 6 * a + b]
             d2E[b, a, i, j] = x[7 + 6 * a + b]
+
+
+@_jit
+def _column3(V, dOm, k, c):
+    """``sum_a V[k, a, :] dOm[k, a, c]``: a 3-vector per twist component (V (K, 6, 3)) along
+    coordinate ``c``."""
+    x0 = 0.0
+    x1 = 0.0
+    x2 = 0.0
+    for a in range(6):
+        d = dOm[k, a, c]
+        x0 += V[k, a, 0] * d
+        x1 += V[k, a, 1] * d
+        x2 += V[k, a, 2] * d
+    return x0, x1, x2
 
 
 @_jit
@@ -529,27 +529,13 @@ def load_work(qc, inv, qm, psi0b, D, sec, h, presc_inc, us_held, presc_local, F,
         # cross blocks with the later steps: A_k^T (sum_{l > k} Z_l x F), then Ysuf += Z_k x F
         for i1 in range(mc):
             c1 = cols[k, i1]
-            a0 = 0.0
-            a1 = 0.0
-            a2 = 0.0
-            for a in range(6):
-                d = dOm[k, a, c1]
-                a0 += w[k, a, 0] * d
-                a1 += w[k, a, 1] * d
-                a2 += w[k, a, 2] * d
+            a0, a1, a2 = _column3(w, dOm, k, c1)
             if a0 != 0.0 or a1 != 0.0 or a2 != 0.0:
                 for c2 in range(nc):
                     Cr[c1, c2] += a0 * Ysuf[0, c2] + a1 * Ysuf[1, c2] + a2 * Ysuf[2, c2]
         for i2 in range(mc):
             c = cols[k, i2]
-            z0 = 0.0
-            z1 = 0.0
-            z2 = 0.0
-            for a in range(6):
-                d = dOm[k, a, c]
-                z0 += z[k, a, 0] * d
-                z1 += z[k, a, 1] * d
-                z2 += z[k, a, 2] * d
+            z0, z1, z2 = _column3(z, dOm, k, c)
             Ysuf[0, c] += z1 * F[2] - z2 * F[1]
             Ysuf[1, c] += z2 * F[0] - z0 * F[2]
             Ysuf[2, c] += z0 * F[1] - z1 * F[0]
