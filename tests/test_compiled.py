@@ -219,6 +219,26 @@ def test_the_compiled_load_terms_are_the_autograd_ones(case):
     assert (held > 0) == (case == "held")
 
 
+def test_the_machine_code_cache_follows_both_compiled_modules():
+    """numba re-compiles a cached function when its own file changes, not when a function it
+    calls from another file does: compiled.py's kernels kept the old load terms after
+    compiled_load.py changed (measured: the loaded solve ran at the old speed until the cache
+    was deleted). The cache directory is therefore named by both sources and numba's version,
+    and every compiled kernel of both modules caches there."""
+    from torchpvs import compiled_load
+    a, b = b"def f(): pass\n", b"def g(): pass\n"
+    cache_dir = compiled_load.cache_dir
+    d = cache_dir([a, b], "0.1", "/c")
+    assert d == cache_dir([a, b], "0.1", "/c") and d.startswith("/c/numba-")
+    assert len({d, cache_dir([a + b"#", b], "0.1", "/c"), cache_dir([a, b + b"#"], "0.1", "/c"),
+                cache_dir([a, b], "0.2", "/c")}) == 4
+    root = compiled_load._CACHE_DIR
+    assert root is not None
+    for f in (compiled.evaluate, compiled.total, compiled._newton_serial, compiled._pose_parallel,
+              compiled_load.load_work, compiled_load.exp_jets):
+        assert f._cache._cache_path.startswith(root), f
+
+
 @pytest.mark.parametrize("case", ["fig3", "nested3"])
 def test_the_line_search_work_is_the_newton_work_bit_for_bit(case):
     """The line search evaluates the work alone (order 0: compiled_load.exp_value, no jets) and

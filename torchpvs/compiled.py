@@ -3,9 +3,11 @@
 The same iteration as the eager kernel (:mod:`torchpvs.newton`: Jacobi-scaled
 Levenberg–Marquardt damping, the trusted pure-Newton phase, the Armijo line search, the saddle
 test and escape, the stability verdict), written as plain loops over one element's coordinates
-and compiled by numba (``@njit(cache=True)``: machine code cached beside this file, so only
-the first process that uses it compiles). Each batch element runs on its own, in parallel
-across ``torch.get_num_threads()`` threads for batches of 8 or more. One element's gradient and
+and compiled by numba (``@njit(cache=True)``: machine code cached in a directory named by a
+hash of this module's and :mod:`torchpvs.compiled_load`'s sources,
+:func:`torchpvs.compiled_load.cache_dir`, so only the first process of a version compiles).
+Each batch element runs on its own, in parallel across ``torch.get_num_threads()`` threads for
+batches of 8 or more. One element's gradient and
 exact Hessian (the node sums of :func:`torchpvs.mechanics.elastic_grad_hess`), its
 factorization and the line-search energies cost a few microseconds; the eager kernel spends
 about a millisecond per iteration on operator dispatch at small batches.
@@ -33,19 +35,16 @@ import warnings
 import numpy as np
 import torch
 
-from .compiled_load import load_work, mat4
+from .compiled_load import cached_jit, load_work, mat4
 from .mechanics import compact_q, expand_q
 from .newton import NewtonResult, Problem, tolerance
 
 try:
     import numba
-    from numba import njit, prange
+    from numba import prange
 except ImportError:      # pragma: no cover - numba is a dependency; this is the fallback
-    numba = None
+    numba = None         # (cached_jit then leaves the functions below plain Python)
     prange = range
-
-    def njit(*args, **kwargs):      # the functions below stay plain Python (never called)
-        return lambda f: f
 
 __all__ = ["available", "partials", "pose", "section_step", "solve", "step"]
 
@@ -270,7 +269,7 @@ def pose(q: torch.Tensor, lay, tab, const) -> tuple | None:
 # EIw/GJw (S, Q, N), EIws (S, Q), H_sections (S, C, n, C, n), guide (nc,), guide_const (),
 # and the shared tables phi, Qb (Q, n). C = 2 + N; section s's coordinates start at N + s C n.
 
-_jit = njit(cache=True, nogil=True)
+_jit = cached_jit(nogil=True)
 
 @_jit
 def evaluate(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb,
@@ -834,7 +833,7 @@ def section_step_one(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gcon
     return True
 
 
-@njit(cache=True, nogil=True)
+@cached_jit(nogil=True)
 def _section_serial(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb,
                     new, hmax, ok):
     for b in range(q.shape[0]):
@@ -842,7 +841,7 @@ def _section_serial(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gcons
                                  GJw[b], Hsec[b], guide[b], gconst[b], phi, Qb, new[b], hmax)
 
 
-@njit(cache=True, nogil=True, parallel=True)
+@cached_jit(nogil=True, parallel=True)
 def _section_parallel(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb,
                       new, hmax, ok):
     for b in prange(q.shape[0]):
@@ -880,7 +879,7 @@ def step_at(b, q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, ph
 
 
 # The batch loops: serial, and across numba's threads (prange) for larger batches.
-@njit(cache=True, nogil=True)
+@cached_jit(nogil=True)
 def _newton_serial(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb, LD,
                    Lc, consts, minimize, max_iter, H, g, U, res, it, conv, verdict):
     for b in range(q.shape[0]):
@@ -888,7 +887,7 @@ def _newton_serial(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst
                     LD, Lc, consts, minimize, max_iter, H, g, U, res, it, conv, verdict)
 
 
-@njit(cache=True, nogil=True, parallel=True)
+@cached_jit(nogil=True, parallel=True)
 def _newton_parallel(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb,
                      LD, Lc, consts, minimize, max_iter, H, g, U, res, it, conv, verdict):
     for b in prange(q.shape[0]):
@@ -896,7 +895,7 @@ def _newton_parallel(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gcon
                     LD, Lc, consts, minimize, max_iter, H, g, U, res, it, conv, verdict)
 
 
-@njit(cache=True, nogil=True)
+@cached_jit(nogil=True)
 def _step_serial(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb,
                  LD, consts, ok):
     for b in range(q.shape[0]):
@@ -904,7 +903,7 @@ def _step_serial(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, 
                         Qb, LD, consts[3])
 
 
-@njit(cache=True, nogil=True, parallel=True)
+@cached_jit(nogil=True, parallel=True)
 def _step_parallel(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb,
                    LD, consts, ok):
     for b in prange(q.shape[0]):
@@ -1098,7 +1097,7 @@ def partials_one(q, qmask, D, L, Ls, EI, GJ, coef, tau, psi0, start, h, present,
                                             - Z0[j]) * pm[j]
 
 
-@njit(cache=True, nogil=True)
+@cached_jit(nogil=True)
 def _partials_serial(q, qmask, D, L, Ls, EI, GJ, coef, tau, psi0, start, h, present, curved,
                      active, presc, W, xq, wq, phi, Qb, tau_D, tau_A):
     for b in range(q.shape[0]):
@@ -1107,7 +1106,7 @@ def _partials_serial(q, qmask, D, L, Ls, EI, GJ, coef, tau, psi0, start, h, pres
                      phi, Qb, tau_D[b], tau_A[b])
 
 
-@njit(cache=True, nogil=True, parallel=True)
+@cached_jit(nogil=True, parallel=True)
 def _partials_parallel(q, qmask, D, L, Ls, EI, GJ, coef, tau, psi0, start, h, present, curved,
                        active, presc, W, xq, wq, phi, Qb, tau_D, tau_A):
     for b in prange(q.shape[0]):
@@ -1235,7 +1234,7 @@ def pose_one(q, qm, psi0_base, D, tip_tube, sec, h, presc_inc, us_held, presc_lo
         R[i, 2] = g[i, 2]
 
 
-@njit(cache=True, nogil=True)
+@cached_jit(nogil=True)
 def _pose_serial(q, qm, psi0, D, tip_tube, sec, h, presc_inc, us_held, presc_local, phi, Qb,
                  S, small, tip, R, psi_tip):
     L, B = q.shape[0], q.shape[1]
@@ -1246,7 +1245,7 @@ def _pose_serial(q, qm, psi0, D, tip_tube, sec, h, presc_inc, us_held, presc_loc
                  psi_tip[i, b])
 
 
-@njit(cache=True, nogil=True, parallel=True)
+@cached_jit(nogil=True, parallel=True)
 def _pose_parallel(q, qm, psi0, D, tip_tube, sec, h, presc_inc, us_held, presc_local, phi, Qb,
                    S, small, tip, R, psi_tip):
     L, B = q.shape[0], q.shape[1]

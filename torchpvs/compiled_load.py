@@ -24,17 +24,70 @@ The result is checked against the autograd Hessian in ``tests/test_compiled.py``
 
 from __future__ import annotations
 
+import hashlib
 import math
+import os
+from pathlib import Path
 
 import numpy as np
 
 try:
+    import numba
     from numba import njit
 except ImportError:      # pragma: no cover - numba is a dependency; see torchpvs.compiled
+    numba = None
+
     def njit(*args, **kwargs):
         return lambda f: f
 
-_jit = njit(cache=True, nogil=True)
+
+def cache_dir(sources: list[bytes], version: str, base: str) -> str:
+    """The directory of the compiled kernels' machine code: ``base/numba-<hash>``, the hash of
+    the compiled modules' ``sources`` and numba's ``version``. numba invalidates a cached
+    function when its own file changes, not when a function it calls from another file does
+    (:mod:`torchpvs.compiled`'s kernels call :func:`load_work`), so a cache keyed by one file
+    kept the old load terms after this module changed; a directory per source version cannot."""
+    h = hashlib.sha256(version.encode())
+    for src in sources:
+        h.update(hashlib.sha256(src).digest())
+    return os.path.join(base, "numba-" + h.hexdigest()[:16])
+
+
+def _default_cache_dir() -> str | None:
+    """:func:`cache_dir` of this installation: under ``NUMBA_CACHE_DIR`` if set, else the user's
+    cache (``$XDG_CACHE_HOME`` or ``~/.cache``) ``/torchpvs``; None (numba's own default, beside
+    the sources) where the sources cannot be read."""
+    here = Path(__file__).resolve().parent
+    try:
+        sources = [(here / f).read_bytes() for f in ("compiled.py", "compiled_load.py")]
+    except OSError:      # pragma: no cover - e.g. a zipped installation
+        return None
+    base = os.environ.get("NUMBA_CACHE_DIR") or os.path.join(
+        os.environ.get("XDG_CACHE_HOME") or os.path.join(os.path.expanduser("~"), ".cache"),
+        "torchpvs")
+    return cache_dir(sources, numba.__version__, base)
+
+
+_CACHE_DIR = _default_cache_dir() if numba is not None else None
+
+
+def cached_jit(**options):
+    """``njit(cache=True, **options)`` with the machine code cached in :data:`_CACHE_DIR`
+    (numba's ``CACHE_DIR`` is set only while the function is registered, so other libraries'
+    caches stay where they were)."""
+    def decorate(f):
+        if numba is None or _CACHE_DIR is None:
+            return njit(cache=True, **options)(f)
+        old = numba.config.CACHE_DIR
+        numba.config.CACHE_DIR = _CACHE_DIR
+        try:
+            return njit(cache=True, **options)(f)
+        finally:
+            numba.config.CACHE_DIR = old
+    return decorate
+
+
+_jit = cached_jit(nogil=True)
 
 # a jet: value, gradient (6), Hessian (6 x 6 row-major, upper triangle used) in the twist
 # (wx, wy, wz, vx, vy, vz)
@@ -505,7 +558,6 @@ def load_work(qc, inv, qm, psi0b, D, sec, h, presc_inc, us_held, presc_local, F,
     if order < 2:
         return W
     T = np.empty((6, nc), dtype=dt)
-    Ak = np.empty((3, nc), dtype=dt)
     Ysuf = np.zeros((3, nc), dtype=dt)
     Cr = np.zeros((nc, nc), dtype=dt)
     for k in range(K - 1, -1, -1):
