@@ -100,3 +100,30 @@ def test_non_finite_stiffness_warns_instead_of_raising():
         tp.solve(SCENE, insertion=INS[1:], rotation=rot1, options=OPTS).tip_position[:, 0].sum(),
         rot1)
     assert torch.allclose(g[1], g1[0], rtol=1e-10, atol=1e-14)
+
+
+def test_adjoint_factors_solve_the_padded_system():
+    """The adjoint factorization works on each element's active coordinates only
+    (implicit.AdjointFactors). Reference: a dense solve of the padded Hessian (identity on the
+    inactive coordinates), on a batch whose elements have different active coordinates (a tube
+    end inside the guide, a short outer tube, the Fig. 3 robot) so that the compaction pads."""
+    from torchpvs.implicit import adjoint_factor
+    ins = torch.tensor([[0.090, 0.2085], [0.0, 0.05], [0.2, 0.3]], dtype=torch.float64)
+    rot = torch.tensor([[0.0, 1.0], [0.3, 2.0], [0.0, -0.5]], dtype=torch.float64)
+    eq = tp.solve(SCENE, insertion=ins, rotation=rot, options=OPTS)
+    info = eq.context.implicit
+    qmask = info.qmask
+    assert len(set(qmask.sum(-1).tolist())) > 1           # the compaction pads some elements
+    D, A, F, M = (t.detach() for t in eq.context.actuation_and_load)
+    factors = adjoint_factor(eq.q.detach(), info, D, A, F, M, eq.context.tubes)
+    assert factors.lu.shape[-1] == int(qmask.sum(-1).max()) < qmask.shape[-1]
+    rhs = torch.randn(3, qmask.shape[-1], 4, dtype=torch.float64,
+                      generator=torch.Generator().manual_seed(0)) * qmask[..., None]
+    ref = torch.linalg.solve(info.hessian(), rhs)
+    for tangent in (False, True):     # H is symmetric: the tangent and its adjoint agree
+        x = factors.solve(rhs, tangent=tangent)
+        assert torch.allclose(x, ref, rtol=1e-9, atol=1e-12 * float(ref.abs().max()))
+        assert bool((x[qmask == 0] == 0).all())
+    sub = factors.rows(torch.tensor([2, 0]))
+    assert torch.allclose(sub.solve(rhs[[2, 0]]), ref[[2, 0]], rtol=1e-9,
+                          atol=1e-12 * float(ref.abs().max()))

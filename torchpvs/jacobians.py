@@ -52,7 +52,7 @@ class ControlJacobians:
 
 
 def _adjoint_rows(eq, rows: torch.Tensor):
-    """The adjoint factorization ``(lu, pivots, scale)`` of batch ``rows`` of the equilibrium:
+    """The :class:`~torchpvs.implicit.AdjointFactors` of batch ``rows`` of the equilibrium:
     indexed from the cached one, or (first use) computed for the whole batch and cached, or for
     a subset of rows only (not cached: the cache is per batch)."""
     ctx = eq.context
@@ -66,7 +66,7 @@ def _adjoint_rows(eq, rows: torch.Tensor):
     if factors is None:
         sub = info.rows(rows, H=info.hessian()[rows])
         return adjoint_factor(q[rows], sub, D[rows], A[rows], F[rows], M[rows], tubes)
-    return tuple(t[rows] for t in factors)
+    return factors.rows(rows)
 
 
 def _replicated(eq, m: int, rows: torch.Tensor, D=None):
@@ -197,7 +197,7 @@ def _schur(eq, rows: torch.Tensor, tip: bool = False, D=None):
     ctx = eq.context
     if ctx.implicit.has_moment:
         return _implicit_rows(eq, rows, stiffness=True, tip=False), None, None, None
-    lu, piv, scale = _adjoint_rows(eq, rows)
+    factors = _adjoint_rows(eq, rows)
     qmask = ctx.implicit.qmask[rows]                                      # (B, nq)
     N = m // 2
     D0 = ctx.insertion.detach()[rows] if D is None else D
@@ -218,17 +218,9 @@ def _schur(eq, rows: torch.Tensor, tip: bool = False, D=None):
         Uxx = torch.cat([UxD, UxA], -1).reshape(B, m, m)
         lay_mask = lay.qmask.reshape(B, m, -1)[:, 0]
     Uqx = (Uxq.reshape(B, m, -1) * qmask[:, None]).transpose(1, 2)          # (B, nq, 2N)
-    Z = _tangent_solve((lu, piv, scale), Uqx) * qmask[..., None]
+    Z = factors.solve(Uqx, tangent=True) * qmask[..., None]
     K = Uxx - Uqx.transpose(1, 2) @ Z
     return 0.5 * (K + K.transpose(1, 2)), Z, partials, (None if D is None else lay_mask)
-
-
-def _tangent_solve(factors, rhs: torch.Tensor) -> torch.Tensor:
-    """``T^-1 rhs`` ``(B, nq, k)`` with ``T`` the equilibrium's tangent, from the adjoint
-    factors ``(lu, pivots, scale)`` (LU of the Jacobi-scaled ``T^T``: solve its transpose)."""
-    lu, piv, scale = factors
-    s = scale.sqrt()[..., None]
-    return torch.linalg.lu_solve(lu, piv, rhs / s, adjoint=True) / s
 
 
 def _tip_partials(eq, rows: torch.Tensor, D=None):
@@ -296,11 +288,11 @@ def _implicit_rows(eq, rows: torch.Tensor, *, stiffness: bool, tip: bool) -> tor
     batch repeated once per row (:func:`_replicated`)."""
     B, n = len(rows), 2 * eq.context.insertion.shape[1]
     m = n * stiffness + 6 * tip
-    lu, piv, scale = _adjoint_rows(eq, rows)
+    factors = _adjoint_rows(eq, rows)
     q, info, (D, A, F, M), tubes = _replicated(eq, m, rows)
     D.requires_grad_(True)
     A.requires_grad_(True)
-    info.adjoint = tuple(t.repeat_interleave(m, 0) for t in (lu, piv, scale))
+    info.adjoint = factors.rows(torch.arange(B, device=q.device).repeat_interleave(m))
     pick = torch.eye(m, dtype=q.dtype, device=q.device).repeat(B, 1)        # (B m, m)
     with torch.enable_grad():
         out = differentiable_outputs(q, info, D, A, F, M, tubes)
@@ -379,7 +371,7 @@ def control_jacobians(eq, *, compliance: bool = True,
             opts = replace(eq.context.options, load_coordinates=True, order=eq.order)
             eqc = eq.solve_again(opts, eq)
         Pq = _tip_partials(eqc, rows)[0]
-        C = (Pq @ _tangent_solve(_adjoint_rows(eqc, rows), Pq.transpose(1, 2))).detach()
+        C = (Pq @ _adjoint_rows(eqc, rows).solve(Pq.transpose(1, 2), tangent=True)).detach()
     sv = torch.linalg.svdvals(K)
     rank = (sv > rank_tol * sv[:, :1]).sum(-1)
     Kp = torch.linalg.pinv(K, rtol=rank_tol)
