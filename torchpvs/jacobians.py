@@ -336,13 +336,13 @@ def _rotation_rows_from_hessian(eq, rows, D0, tip: bool = False):
                       torch.autograd.grad((out * pick).sum(), (q, D, A)))
     partials = (_tip_rows(eq, rows, *(g[:, N:] for g in (Gq, GD, GA))) if tip else None)
     UDq, UDD, UDA = (g[:, :N] for g in (Gq, GD, GA))
-    H = eq.context.implicit.hessian()[rows]                                # (B, nq, nq)
+    Hw = eq.context.implicit.hessian()[rows, :N]            # (B, N, nq): the guide twists' rows
     GJ = tube_rows(eq.context.tubes, rows).GJ.detach().expand(B, N)
     GJD = torch.diag_embed(GJ * D0)                                         # (B, N, N)
-    UAq = H[:, :N, :].clone()
+    UAq = Hw.clone()
     UAq[:, :, :N] -= GJD
     UAq = UAq / D0[:, :, None]
-    UAA = (H[:, :N, :N] - GJD) / (D0[:, :, None] * D0[:, None, :])
+    UAA = (Hw[:, :, :N] - GJD) / (D0[:, :, None] * D0[:, None, :])
     Uxq = torch.cat([UDq, UAq], 1)
     Uxx = torch.cat([torch.cat([UDD, UDA], -1),
                      torch.cat([UDA.transpose(1, 2), UAA], -1)], 1)
