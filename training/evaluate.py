@@ -298,12 +298,14 @@ def _learning_curves(out: Path, run_dirs: list[Path], save, Figure) -> bool:
     if runs:
         fig = Figure(figsize=(11, 3.8))
         ax1, ax2 = fig.add_subplot(1, 2, 1), fig.add_subplot(1, 2, 2)
+        episodes = set()
         for d in runs:
             t_min, steps_at = _wall_clock(d)
             data = np.load(d / "evaluations.npz")
             x = np.asarray(data["timesteps"], float)
             y = (np.asarray(data["successes"]).mean(-1) if "successes" in data
                  and len(data["successes"]) else np.asarray(data["results"]).mean(-1))
+            episodes.add(np.asarray(data["results"]).shape[-1])
             label = d.name
             ax1.plot(x / 1e3, y, marker="o", label=label)
             if t_min is not None:
@@ -314,7 +316,9 @@ def _learning_curves(out: Path, run_dirs: list[Path], save, Figure) -> bool:
             ax.set_ylabel("eval success within 1 mm")
             ax.grid(alpha=0.3)
             ax.legend(fontsize=7)
-        fig.suptitle("learning curves (evaluation callback: 200 seeded selection episodes, "
+        # the episodes per evaluation as the runs' own evaluations.npz hold them
+        n = "/".join(str(e) for e in sorted(episodes))
+        fig.suptitle(f"learning curves (evaluation callback: {n} seeded selection episodes, "
                      "success within 1 mm)", fontsize=9)
         save(fig, "learning_curve.png")
     return bool(runs)
