@@ -148,6 +148,11 @@ class CTRReachEnv(gym.Env):
         """Success radius [m] from now on (curricula)."""
         self.task.set_tolerance(tolerance)
 
+    def set_next_goal(self, goal) -> None:
+        """Goal ``(3,)`` [m] for the next episode when its ``reset`` names none (curricula:
+        SB3's ``DummyVecEnv`` autoresets without options); ``None`` clears it. Used once."""
+        self.task.set_next_goal([0], goal)
+
     def render(self):
         """Gymnasium's render API: ``"rgb_array"`` returns the frame ``(H, W, 3)`` uint8;
         ``"human"`` draws into a pyplot window (also done by every ``reset``/``step``) and

@@ -344,7 +344,9 @@ class ReachBatch:
 
     User goals: ``reset(idx, goal=...)`` takes the goals [m] instead of sampling them (checked
     by :meth:`check_goal`); their actuation preimage is unknown, so :meth:`travel_steps` is NaN
-    for them. Stepping a robot that was never reset raises ``gymnasium.error.ResetNeeded``.
+    for them. :meth:`set_next_goal` queues such a goal for a robot's next reset, autoresets
+    included (a training curriculum's hook: the vector faces reset finished robots themselves).
+    Stepping a robot that was never reset raises ``gymnasium.error.ResetNeeded``.
     """
 
     GOAL_DRAWS = 20
@@ -362,6 +364,7 @@ class ReachBatch:
         self.tolerance = config.tolerance
         self.goal = np.zeros((batch_size, 3))
         self.goal_actuation = np.zeros((batch_size, 2 * robot.n_tubes))  # one preimage of goal
+        self.next_goal = np.full((batch_size, 3), np.nan)   # set_next_goal's; NaN: none
         self.prev_action = np.zeros((batch_size, 2 * self.N))
         self.snap_flag = np.zeros(batch_size)   # 1 after a penalized snap (achieved_goal[3])
         # per robot: the episode generator (an env's np_random) and the one the current
@@ -422,7 +425,7 @@ class ReachBatch:
             if seeds[i] is not None:
                 self.np_randoms[i] = seeding.np_random(int(seeds[i]))[0]
 
-    def check_goal(self, goal, n: int) -> np.ndarray:
+    def check_goal(self, goal, n: int, name: str = "options['goal']") -> np.ndarray:
         """A user goal (``reset(options={"goal": ...})``) as ``(n, 3)`` float64 [m]: one
         position ``(3,)`` for all ``n`` robots or one per robot ``(n, 3)``, in the base frame
         (origin at the orifice), finite and within ``2 x robot.reach`` of the orifice (the
@@ -430,20 +433,20 @@ class ReachBatch:
         g = np.asarray(goal)
         if g.dtype == object or not (np.issubdtype(g.dtype, np.floating)
                                      or np.issubdtype(g.dtype, np.integer)):
-            raise ValueError(f"options['goal'] must be a real 3-vector [m] (or one per robot, "
+            raise ValueError(f"{name} must be a real 3-vector [m] (or one per robot, "
                              f"({n}, 3)), got {goal!r}")
         g = g.astype(np.float64)
         if g.shape == (3,):
             g = np.broadcast_to(g, (n, 3)).copy()
         if g.shape != (n, 3):
-            raise ValueError(f"options['goal'] must have shape (3,) or ({n}, 3) (a position "
+            raise ValueError(f"{name} must have shape (3,) or ({n}, 3) (a position "
                              f"[m] in the base frame), got shape {np.shape(goal)}")
         if not np.isfinite(g).all():
-            raise ValueError(f"options['goal'] must be finite, got {goal!r}")
+            raise ValueError(f"{name} must be finite, got {goal!r}")
         limit = 2.0 * self.robot.reach
         far = np.linalg.norm(g, axis=-1) > limit
         if far.any():
-            raise ValueError(f"options['goal'] must lie within 2 x reach = {limit:.4g} m of the "
+            raise ValueError(f"{name} must lie within 2 x reach = {limit:.4g} m of the "
                              f"orifice (the base frame's origin), got {g[far][0].tolist()} at "
                              f"{float(np.linalg.norm(g[far][0])):.4g} m")
         return g
@@ -509,10 +512,19 @@ class ReachBatch:
         generator from its episode generator (``np_randoms``), then samples a stable start and
         (without ``goal``) a goal; ``goal`` (``(3,)`` or ``(len(idx), 3)`` [m], see
         :meth:`check_goal`) replaces the sampled goal (``goal_min_distance`` does not apply;
-        the start is the one the same generator gives without it)."""
+        the start is the one the same generator gives without it). Without ``goal``, a robot
+        with a goal queued by :meth:`set_next_goal` takes that one (and the queue empties)."""
         idx = np.asarray(idx, dtype=int)
         if len(idx) == 0:
             return
+        if goal is None:
+            queued = np.isfinite(self.next_goal[idx, 0])
+            if queued.any():
+                goals = self.next_goal[idx[queued]].copy()
+                self.next_goal[idx[queued]] = np.nan
+                self.reset(idx[~queued])
+                self.reset(idx[queued], goal=goals)
+                return
         user_goal = None if goal is None else self.check_goal(goal, len(idx))
         for i in idx:
             self.rngs[i] = np.random.default_rng(self.np_randoms[i].integers(2**63))
@@ -555,6 +567,18 @@ class ReachBatch:
         self.snap_flag[idx] = 0.0
         self.ready[idx] = True
         self._measure(idx)
+
+    def set_next_goal(self, idx, goal) -> None:
+        """Queue ``goal`` (``(3,)`` or ``(len(idx), 3)`` [m], checked as :meth:`check_goal`)
+        for the next reset of robots ``idx``, an autoreset included, as if it had been passed
+        to that reset; ``goal=None`` clears the queue. A queued goal is used once. For
+        curricula that choose goals while training (``training.callbacks.FailedGoalReplay``):
+        the vector envs reset finished robots inside ``step``, where no options reach them."""
+        idx = np.asarray(idx, dtype=int).reshape(-1)
+        if goal is None:
+            self.next_goal[idx] = np.nan
+            return
+        self.next_goal[idx] = self.check_goal(goal, len(idx), name="next goal")
 
     def _measure(self, idx) -> None:
         """The measured tip of robots ``idx``: the true tip plus ``tip_noise`` per axis, from

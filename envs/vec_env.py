@@ -9,7 +9,9 @@ options through ``set_options()`` are used at the next ``reset()``. Seeding is S
 ``DummyVecEnv`` of single environments seeded ``s`` (robot ``i`` = ``gym.make(id)`` reset with
 seed ``s + i``, then its autoresets), the same rule as the Gymnasium vector env, up to solver
 round-off. Options: ``"goal"`` (``(3,)`` [m], that robot's goal for the next episode),
-``"tolerance"``; any other key raises ``ValueError``.
+``"tolerance"``; any other key raises ``ValueError``. Options reach an explicit ``reset()``
+only (SB3's rule); ``env_method("set_next_goal", goal, indices=[i])`` queues a goal for robot
+``i``'s next episode, an autoreset included.
 """
 
 from __future__ import annotations
@@ -149,6 +151,11 @@ class _RobotProxy:
 
     def set_tolerance(self, tolerance: float) -> None:
         self._venv.task.set_tolerance(tolerance)
+
+    def set_next_goal(self, goal) -> None:
+        """This robot's goal [m] for its next episode (:meth:`envs.task.ReachBatch.set_next_goal`;
+        ``env_method("set_next_goal", goal, indices=[i])``)."""
+        self._venv.task.set_next_goal([self._i], goal)
 
     def relabel_observation(self, observation, achieved_goal, desired_goal):
         return self._venv.task.relabel_observation(observation, achieved_goal, desired_goal)

@@ -14,10 +14,12 @@ from __future__ import annotations
 
 import math
 import time
+from collections import deque
 
+import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback
 
-__all__ = ["ToleranceCurriculum", "WallClockLimit"]
+__all__ = ["FailedGoalReplay", "ToleranceCurriculum", "WallClockLimit"]
 
 
 class ToleranceCurriculum(BaseCallback):
@@ -69,3 +71,63 @@ class WallClockLimit(BaseCallback):
 
     def _on_step(self) -> bool:
         return time.perf_counter() < self.deadline
+
+
+class FailedGoalReplay(BaseCallback):
+    """Replay the goals of failed episodes: a robot's episode that ends unsuccessful
+    (``info["is_success"]`` False at its last step: a miss at the time limit or a snap) adds its
+    goal to a pool of the last ``capacity`` such goals, and each robot that finishes an episode
+    draws, with probability ``fraction``, a goal from the pool (uniformly) for its episode after
+    the next one (the next has started in the same step: vector envs reset finished robots
+    themselves). The start state is the one the robot's seed gives either way.
+
+    Why: the goals a nearly trained agent misses are rare under the goal distribution (the
+    force agent's far misses cluster at the top of the workspace, 7 % of the goals), so uniform
+    goals give the policy few episodes where it still fails; this focuses a share of the
+    episodes there, as prioritized or "hard goal" curricula do. Evaluation envs are untouched.
+
+    Needs an env with ``set_next_goal`` (:class:`envs.CTRReachVecEnv`, or single
+    :class:`envs.CTRReachEnv` in an SB3 vec env) and goals in ``desired_goal[:3]`` [m];
+    observations normalized by ``VecNormalize`` are refused (the pool would hold normalized
+    goals). Logged: ``replay/pool`` (goals in the pool), ``replay/share`` (the share of finished
+    episodes that queued a replayed goal)."""
+
+    def __init__(self, fraction: float = 0.3, capacity: int = 1000, seed: int | None = None,
+                 verbose: int = 0):
+        super().__init__(verbose)
+        fraction = float(fraction)
+        if not 0.0 <= fraction <= 1.0:
+            raise ValueError(f"FailedGoalReplay fraction must be in [0, 1], got {fraction!r}")
+        if isinstance(capacity, bool) or not isinstance(capacity, int) or capacity < 1:
+            raise ValueError(f"FailedGoalReplay capacity must be an integer >= 1, got "
+                             f"{capacity!r}")
+        self.fraction, self.capacity, self.seed = fraction, capacity, seed
+        self.pool: deque[np.ndarray] = deque(maxlen=capacity)
+        self.finished = 0
+        self.replayed = 0
+        self.rng = np.random.default_rng(seed)
+
+    def _on_training_start(self) -> None:
+        from stable_baselines3.common.vec_env import VecNormalize, unwrap_vec_wrapper
+        norm = unwrap_vec_wrapper(self.training_env, VecNormalize)
+        if norm is not None and norm.norm_obs:
+            raise ValueError("FailedGoalReplay: the training env normalizes observations "
+                             "(VecNormalize norm_obs), so its goals are not positions [m]")
+        if self.seed is None and self.model.seed is not None:
+            self.rng = np.random.default_rng(self.model.seed + 7919)
+
+    def _on_step(self) -> bool:
+        dones, infos = self.locals["dones"], self.locals["infos"]
+        for i in np.flatnonzero(dones):
+            info = infos[i]
+            self.finished += 1
+            last = info.get("terminal_observation")
+            if not info.get("is_success", False) and last is not None:
+                self.pool.append(np.array(last["desired_goal"][:3], dtype=np.float64))
+            if self.pool and self.rng.random() < self.fraction:
+                goal = self.pool[int(self.rng.integers(len(self.pool)))]
+                self.training_env.env_method("set_next_goal", goal, indices=[int(i)])
+                self.replayed += 1
+        self.logger.record("replay/pool", len(self.pool))
+        self.logger.record("replay/share", self.replayed / max(1, self.finished))
+        return True

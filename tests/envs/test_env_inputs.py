@@ -400,6 +400,42 @@ def test_reset_takes_a_user_goal_on_every_face():
         np.linalg.norm(s.state().tip[0] - goal))
 
 
+def test_a_queued_goal_takes_the_next_autoreset_once_and_keeps_the_seeds_start():
+    """``set_next_goal`` (curricula that pick goals while training): the SB3 adapter resets
+    finished robots inside ``step``, where no reset options reach them."""
+    goal = np.array([0.01, -0.02, 0.12])
+    envs_ = [CTRReachVecEnv(2, max_episode_steps=2) for _ in range(2)]
+    for v in envs_:
+        v.seed(3)
+        v.reset()
+    queued, plain = envs_
+    queued.env_method("set_next_goal", goal, indices=[1])
+    zero = np.zeros((2, 4), np.float32)
+    for _ in range(2):                          # the time limit: both robots autoreset
+        oq, _, dq, _ = queued.step(zero)
+        op, _, dp, _ = plain.step(zero)
+    assert dq.all() and dp.all()
+    np.testing.assert_allclose(oq["desired_goal"][1, :3], goal, atol=1e-7)
+    assert not np.allclose(op["desired_goal"][1, :3], goal)
+    # robot 0 had nothing queued; robot 1's start is the one its seed gives without the goal
+    np.testing.assert_array_equal(oq["desired_goal"][0], op["desired_goal"][0])
+    np.testing.assert_array_equal(queued.state().x, plain.state().x)
+    for _ in range(2):                          # used once: the next episode samples again
+        oq, _, _, _ = queued.step(zero)
+        op, _, _, _ = plain.step(zero)
+    np.testing.assert_array_equal(oq["desired_goal"], op["desired_goal"])
+    # the single env: its next reset without a goal option takes it; None clears it
+    e = CTRReachEnv()
+    e.set_next_goal(goal)
+    obs, _ = e.reset(seed=1)
+    np.testing.assert_allclose(obs["desired_goal"][:3], goal, atol=1e-7)
+    e.set_next_goal(goal)
+    e.set_next_goal(None)
+    assert not np.allclose(e.reset(seed=1)[0]["desired_goal"][:3], goal)
+    with pytest.raises(ValueError, match=r"next goal must lie within 2 x reach"):
+        e.set_next_goal([0.0, 0.0, 1.0])
+
+
 @pytest.mark.parametrize("goal,match", [
     ([0.01, 0.02], r"shape \(3,\)"),
     ([0.0, 0.0, np.nan], "finite"),

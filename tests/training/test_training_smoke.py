@@ -83,6 +83,32 @@ def test_curriculum_schedule_and_env_tolerance():
         ToleranceCurriculum(0.01, 0.001, fraction=0)
 
 
+def test_failed_goal_replay_sends_robots_back_to_missed_goals():
+    """Every episode of an untrained agent misses (3 steps, 1 mm): with ``fraction=1`` each
+    finished robot queues a goal from the pool of missed ones, which its episode after the next
+    takes (envs' ``set_next_goal``)."""
+    from sb3_contrib import TQC
+
+    from training.callbacks import FailedGoalReplay
+
+    venv = envs.CTRReachVecEnv(2, max_episode_steps=3)
+    model = TQC("MultiInputPolicy", venv, learning_starts=10_000, buffer_size=100, seed=0,
+                policy_kwargs={"net_arch": [8]})
+    cb = FailedGoalReplay(fraction=1.0, capacity=50)
+    model.learn(18, callback=cb)               # 9 batched steps: 3 episodes per robot
+    assert cb.finished == 6 and cb.replayed == 6 and len(cb.pool) == 6
+    pool = np.array(cb.pool)
+    # the episodes now running were queued at the end of the first ones: goals from the pool
+    for g in venv.state().goal:
+        assert np.abs(pool - g).max(-1).min() < 1e-6
+    # the pool held the missed episodes' goals, not the goals of the episodes that followed
+    assert len({tuple(np.round(g, 9)) for g in pool}) >= 4
+    with pytest.raises(ValueError, match="fraction"):
+        FailedGoalReplay(fraction=1.5)
+    with pytest.raises(ValueError, match="capacity"):
+        FailedGoalReplay(capacity=0)
+
+
 def test_train_200_steps_and_evaluate(tmp_path):
     """~200 SAC+HER steps on 2 batched robots from sac.yml, the run folder's records, the
     curriculum applied to the training env, then the evaluation script on a few goals with
