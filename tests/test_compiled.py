@@ -385,6 +385,57 @@ def test_the_compiled_force_partials_are_the_closed_form(monkeypatch, dtype):
     assert max(worst) < (1e-12 if dtype == torch.float64 else 1e-5), max(worst)
 
 
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_the_compiled_actuation_rows_are_the_autograd_ones(dtype):
+    """The actuator stiffness's rows ``U_xq, U_xD, U_xalpha`` for the insertions and for all
+    actuators (compiled: a complex step of the force partials per actuator) against one
+    reverse pass of autograd through
+    torchpvs.forces.closed_form_partials (the eager kernel's), at equilibria and at coordinates
+    off them, on the suite's scenes (2-4 tubes, random robots) and next to kinks: relative
+    1e-11 in float64, 1e-5 in float32; the layout's coordinate masks identical."""
+    from torchpvs.forces import actuation_rows
+    from torchpvs.kernel import _compiled_actuation_rows
+    worst = []
+    noise = torch.Generator().manual_seed(0)
+    cases = [(scene, None) for scene in (fig3(), random_scene(1), random_scene(2),
+                                         nested_scene(3, seed=1), nested_scene(4, seed=2))]
+    cases += [(scene, D) for scene, D in _kink_scenes()[1::3]]
+    for scene, D in cases:
+        rot = np.random.default_rng(1).uniform(-3, 3, (6, len(scene.tubes)))
+        kw = {} if D is None else {"insertion": torch.tensor(D, dtype=dtype).expand(6, -1)}
+        eq = tp.solve(scene, rotation=torch.tensor(rot, dtype=dtype),
+                      options=SolverOptions(dtype=dtype), **kw)
+        ctx, info = eq.context, eq.context.implicit
+        q = eq.q.detach()
+        q_off = q + 0.2 * torch.randn(q.shape, generator=noise, dtype=dtype) * info.qmask
+        for qq, rotations in ((q, False), (q_off, False), (q_off, True)):
+            args = (qq, ctx.tubes, ctx.insertion, ctx.rotation, info.loaded, info.tab, info.disc,
+                    rotations)
+            ref, out = actuation_rows(*args), _compiled_actuation_rows(*args)
+            assert torch.equal(ref[3], out[3])
+            assert all(o.dtype == dtype and o.shape == r.shape
+                       for o, r in zip(out[:3], ref[:3], strict=True))
+            qm = ref[3][:, None]
+            for r, o in zip((ref[0] * qm, *ref[1:3]), (out[0] * qm, *out[1:3]), strict=True):
+                worst.append(float((r - o).abs().max() / r.abs().max()))
+    assert len(worst) >= 3 * 3 * len(cases)
+    assert max(worst) < (1e-11 if dtype == torch.float64 else 1e-5), max(worst)
+
+
+def test_the_actuator_stiffness_is_the_same_on_both_kernels():
+    """``actuator_stiffness`` of the same equilibria solved on the eager and the compiled
+    kernel (which take the actuator rows from autograd and from the complex step), the kink
+    sides and a base at the orifice included, to 1e-9 relative."""
+    from torchpvs.jacobians import actuator_stiffness
+    rot = torch.tensor(np.random.default_rng(3).uniform(-3, 3, (4, 2)), dtype=DT)
+    # [0.0, 0.15]: a base at the orifice, every row from the kernel (no guide twist row)
+    for scene, D in [(fig3(), [0.05, 0.15]), (fig3(), [0.0, 0.15]), *_kink_scenes()[::2]]:
+        eqs = both(scene, insertion=torch.tensor(D, dtype=DT).expand(4, 2), rotation=rot)
+        Ke, Kc = (actuator_stiffness(e) for e in eqs)
+        np.testing.assert_allclose(Kc.numpy(), Ke.numpy(), rtol=1e-9,
+                                   atol=1e-9 * float(Ke.abs().max()))
+
+
 def test_the_compiled_new_section_step_is_the_eager_one(monkeypatch):
     """The new-section step of the one-sided forces (a section of length 1e-7 m appearing at a
     kink, solved for with the rest held): the compiled step against kernel.new_section_step,

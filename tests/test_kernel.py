@@ -67,11 +67,12 @@ def test_registry_holds_kernels_of_callables_accepted_by_the_options():
         assert isinstance(kern, Kernel), name
         assert all(callable(getattr(kern, f)) for f in Kernel._fields), name
         assert tp.SolverOptions(kernel=name).kernel == name
-    # The compiled kernel replaces the Newton solve, step, new-section step, pose and force
-    # partials, and reuses the rest.
+    # The compiled kernel replaces the Newton solve, step, new-section step, pose, force
+    # partials and the stiffness's insertion rows, and reuses the rest.
+    replaced = ("solve", "step", "section_step", "pose", "partials", "actuation_rows")
     for f in Kernel._fields:
         same = getattr(COMPILED, f) is getattr(EAGER, f)
-        assert same == (f not in ("solve", "step", "section_step", "pose", "partials")), f
+        assert same == (f not in replaced), f
 
 
 def test_newton_step_converges_quadratically_at_stable_equilibria():

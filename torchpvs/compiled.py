@@ -46,7 +46,7 @@ except ImportError:      # pragma: no cover - numba is a dependency; this is the
     numba = None         # (cached_jit then leaves the functions below plain Python)
     prange = range
 
-__all__ = ["available", "partials", "pose", "section_step", "solve", "step"]
+__all__ = ["available", "partials", "pose", "section_step", "solve", "step", "stiffness_rows"]
 
 # Batches from this size run in parallel (a parallel launch costs ~10 us: a serial loop over a
 # few elements is faster).
@@ -213,10 +213,9 @@ def section_step(q: torch.Tensor, prob: Problem, new: torch.Tensor,
     return torch.where(okt[:, None], q1, q), okt
 
 
-def partials(q: torch.Tensor, lay, tubes, tab) -> tuple[torch.Tensor, torch.Tensor] | None:
-    """:func:`torchpvs.forces.closed_form_partials` compiled (``q (B, nq)`` on the layout
-    ``lay``, the tube rows ``tubes``): ``(dU/dD, dU/dalpha)`` ``(B, N)``; None where the
-    compiled kernel does not apply (a tensor that requires grad, not CPU)."""
+def _layout_arrays(q: torch.Tensor, lay, tubes, tab) -> tuple | None:
+    """The arguments of :func:`partials_one` after ``q``'s (numpy, ``q``'s dtype), or None
+    where the compiled kernel does not apply (a tensor that requires grad, not CPU)."""
     if (numba is None or q.device.type != "cpu" or q.dtype not in (torch.float32, torch.float64)
             or torch.is_grad_enabled() and (q.requires_grad or lay.D.requires_grad
                                             or lay.alpha.requires_grad)):
@@ -227,16 +226,54 @@ def partials(q: torch.Tensor, lay, tubes, tab) -> tuple[torch.Tensor, torch.Tens
     def a(t, shape=None):
         return _numpy(t if shape is None or t.shape == shape else t.expand(shape), dtype)
 
-    qa = a(q)
+    return (a(lay.qmask), a(lay.D), a(tubes.length, (B, N)), a(tubes.straight, (B, N)),
+            a(lay.EI), a(lay.GJ), a(lay.coef), a(lay.tau), a(lay.psi0), a(lay.start), a(lay.h),
+            a(lay.present), a(lay.curved), a(lay.active), a(lay.presc), a(lay.W),
+            a(_get(tab, "xq")), a(_get(tab, "wq")), a(_get(tab, "phi_q")), a(_get(tab, "Q_q")))
+
+
+def partials(q: torch.Tensor, lay, tubes, tab) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """:func:`torchpvs.forces.closed_form_partials` compiled (``q (B, nq)`` on the layout
+    ``lay``, the tube rows ``tubes``): ``(dU/dD, dU/dalpha)`` ``(B, N)``; None where the
+    compiled kernel does not apply (a tensor that requires grad, not CPU)."""
+    args = _layout_arrays(q, lay, tubes, tab)
+    if args is None:
+        return None
+    qa = _numpy(q, q.dtype)
+    B, N = lay.D.shape
     tau_D = np.empty((B, N), dtype=qa.dtype)
     tau_A = np.empty((B, N), dtype=qa.dtype)
     run = _partials_parallel if _set_threads(B) else _partials_serial
-    run(qa, a(lay.qmask), a(lay.D), a(tubes.length, (B, N)), a(tubes.straight, (B, N)),
-        a(lay.EI), a(lay.GJ), a(lay.coef), a(lay.tau), a(lay.psi0), a(lay.start), a(lay.h),
-        a(lay.present), a(lay.curved), a(lay.active), a(lay.presc), a(lay.W),
-        a(_get(tab, "xq")), a(_get(tab, "wq")), a(_get(tab, "phi_q")), a(_get(tab, "Q_q")),
-        tau_D, tau_A)
+    run(qa, *args, tau_D, tau_A)
     return torch.from_numpy(tau_D), torch.from_numpy(tau_A)
+
+
+def stiffness_rows(q: torch.Tensor, lay, tubes, tab, rotations: bool = False) -> tuple | None:
+    """Rows of the unloaded energy's Hessian at fixed ``q (B, nq)`` on the layout ``lay``:
+    ``(U_xq (B, m, nq), U_xD (B, m, N), U_xalpha (B, m, N))`` for ``x`` the insertions
+    (``m = N``) or, with ``rotations``, the insertions then the rotations (``m = 2N``), zero on
+    the inactive coordinates — what :func:`torchpvs.forces.actuation_rows` differentiates
+    :func:`~torchpvs.forces.closed_form_partials` for, by a complex step per actuator
+    (:func:`stiffness_rows_one`, exact to rounding; ``U_xq = (dg/dx)^T`` by the symmetry of
+    second derivatives). None where the compiled kernel does not apply (a tensor that requires
+    grad, not CPU). Computed in float64 (complex128), returned in ``q``'s dtype."""
+    args = _layout_arrays(q, lay, tubes, tab)
+    if args is None:
+        return None
+    f64 = tuple(x.astype(np.float64, copy=False) for x in args)
+    qa = _numpy(q, torch.float64)
+    B, nq = qa.shape
+    N = lay.D.shape[1]
+    m = 2 * N if rotations else N
+    Gq = np.empty((B, m, nq))
+    X = np.empty((B, m, 2 * N))
+    run = _stiffness_parallel if _set_threads(B) else _stiffness_serial
+    run(qa, *f64, Gq, X)
+    t = torch.from_numpy
+    Xt = t(X)[:, :, :m].transpose(1, 2)              # (B, m rows, m directions)
+    # U_Dalpha without the rotation directions: d tau_alpha / dD by symmetry
+    UxA = Xt[:, :, N:] if rotations else t(X)[:, :, N:]
+    return t(Gq).to(q.dtype), Xt[:, :, :N].to(q.dtype), UxA.to(q.dtype)
 
 
 def pose(q: torch.Tensor, lay, tab, const) -> tuple | None:
@@ -957,14 +994,35 @@ def partials_one(q, qmask, D, L, Ls, EI, GJ, coef, tau, psi0, start, h, present,
     """One element's ``(dU/dD, dU/dalpha)`` at fixed q into tau_D, tau_A (N,)
     (forces.closed_form_partials term by term, on the layout's S sections, prescribed ones
     included; the node fields of mechanics.node_fields)."""
+    partials_core(q, D, np.zeros(D.shape[0], dtype=D.dtype), qmask, D, L, Ls, EI, GJ, coef,
+                  tau, psi0, start, h, present, curved, active, presc, W, xq, wq, phi, Qb,
+                  False, tau_D, tau_D, tau_A)
+
+
+@_jit
+def partials_core(q, Dc, dA, qmask, D, L, Ls, EI, GJ, coef, tau, psi0, start, h, present,
+                  curved, active, presc, W, xq, wq, phi, Qb, want_g, g, tau_D, tau_A):
+    """:func:`partials_one` at the insertions ``Dc`` (N,) near the layout's ``D`` and the
+    rotations moved by ``dA`` (N,), and with
+    ``want_g`` the energy's gradient in the full coordinates ``q`` into ``g`` (nq,), zero on
+    the inactive ones (the gradient of mechanics.potential without load).
+
+    The layout's fields are piecewise linear in ``D`` with the slopes this function derives
+    (``dh``, ``dstart``: the cut order; ``-1`` for the transitions ``tau``; ``dtg`` for the
+    curved length in the guide), so at ``Dc = D + i eps e_l`` (complex, the layout's sections
+    and masks unchanged) every output is its value plus ``i eps`` times its ``D_l``-derivative
+    along those slopes, and at ``dA = i eps e_l`` its ``alpha_l``-derivative: the complex step
+    that gives the stiffness's rows (:func:`stiffness_rows_one`). ``Dc = D`` and ``dA = 0``
+    (real) is :func:`partials_one`."""
     N = D.shape[0]
     S = h.shape[0]
     Q, n = phi.shape
     Cn = (2 + N) * n
-    dt = q.dtype
+    rt = D.dtype
+    vt = Dc.dtype
     # d(cut)/dD of the cuts in build_layout's sorted order (a stable sort, as torch.sort's)
-    cut = np.empty(2 * N, dtype=dt)
-    dsrc = np.empty(2 * N, dtype=dt)
+    cut = np.empty(2 * N, dtype=rt)
+    dsrc = np.empty(2 * N, dtype=rt)
     for j in range(N):
         ell_raw = L[j] - D[j]
         t_raw = Ls[j] - D[j]
@@ -990,45 +1048,70 @@ def partials_one(q, qmask, D, L, Ls, EI, GJ, coef, tau, psi0, start, h, present,
             perm[m + 1] = perm[m]
             m -= 1
         perm[m + 1] = k
-    dh = np.zeros((S, N), dtype=dt)
-    dstart = np.zeros((S, N), dtype=dt)
+    dh = np.zeros((S, N), dtype=rt)
+    dstart = np.zeros((S, N), dtype=rt)
     for k in range(S):
         l = perm[k] % N
         dh[k, l] += dsrc[perm[k]]
         if k + 1 < S:
             dstart[k + 1, l] = dsrc[perm[k]]
             dh[k + 1, l] -= dsrc[perm[k]]
+    # the layout at Dc: starts, lengths and transitions moved along their slopes
+    dD = np.empty(N, dtype=vt)
+    tau_c = np.empty(N, dtype=vt)
+    psi0_c = np.empty(N, dtype=vt)
+    for j in range(N):
+        dD[j] = Dc[j] - D[j]
+        tau_c[j] = tau[j] - dD[j]
+        psi0_c[j] = psi0[j] + dA[j]
+    start_c = np.empty(S, dtype=vt)
+    h_c = np.empty(S, dtype=vt)
+    for k in range(S):
+        start_c[k] = start[k]
+        h_c[k] = h[k]
+        for l in range(N):
+            start_c[k] += dstart[k, l] * dD[l]
+            h_c[k] += dh[k, l] * dD[l]
+    if want_g:
+        for m in range(g.shape[0]):
+            g[m] = 0.0
     # guide: twist and bending energy held straight; g0 the own-tube angle shift per D
-    g0 = np.empty(N, dtype=dt)
-    psi_start = np.empty(N, dtype=dt)
+    g0 = np.empty(N, dtype=vt)
+    psi_start = np.empty(N, dtype=vt)
     for j in range(N):
         w = q[j] * qmask[j]
         Dm = min(D[j], L[j])
         dmin = 1.0 if D[j] < L[j] else (0.0 if D[j] > L[j] else 0.5)
         dtg = dmin if Dm - Ls[j] >= 0 else 0.0
-        tg = max(Dm - Ls[j], 0.0)
+        tg_r = max(Dm - Ls[j], 0.0)
+        tg = tg_r + dtg * dD[j]
         ugx = horner(coef, j, 0, tg)
         ugy = horner(coef, j, 1, tg)
         tau_D[j] = 0.5 * GJ[j] * w * w + 0.5 * EI[j] * (ugx * ugx + ugy * ugy) * dtg
         tau_A[j] = 0.0
         g0[j] = w + horner(coef, j, 2, tg) * dtg
-        psi_start[j] = psi0[j] + D[j] * w
-    before = np.zeros((N, N), dtype=dt)       # (j, l): sum over k' < k of dh_k'l c_k'j0
-    a = np.empty((2, n), dtype=dt)
-    c = np.empty((N, n), dtype=dt)
-    Rx = np.empty(N, dtype=dt)
-    Ry = np.empty(N, dtype=dt)
-    us = np.empty((N, 3), dtype=dt)
-    dp = np.empty(N, dtype=dt)
-    cs = np.empty(N, dtype=dt)
-    sn = np.empty(N, dtype=dt)
-    locq = np.empty(N, dtype=dt)
-    Gp = np.empty(N, dtype=dt)
-    Z0 = np.empty(N, dtype=dt)
-    pm = np.empty(N, dtype=dt)
+        psi_start[j] = (psi0_c[j] + horner_integral(coef, j, tg)
+                        - horner_integral(coef, j, tg_r) + Dc[j] * w)
+        if want_g:
+            g[j] = GJ[j] * Dc[j] * w
+    before = np.zeros((N, N), dtype=rt)       # (j, l): sum over k' < k of dh_k'l c_k'j0
+    after = np.zeros(N, dtype=vt)             # sum of Gp over the sections after k (g only)
+    Gps = np.zeros((S, N), dtype=vt)
+    a = np.empty((2, n), dtype=rt)
+    c = np.empty((N, n), dtype=rt)
+    Rx = np.empty(N, dtype=vt)
+    Ry = np.empty(N, dtype=vt)
+    us = np.empty((N, 3), dtype=vt)
+    dp = np.empty(N, dtype=vt)
+    cs = np.empty(N, dtype=vt)
+    sn = np.empty(N, dtype=vt)
+    locq = np.empty(N, dtype=rt)
+    Gp = np.empty(N, dtype=vt)
+    Z0 = np.empty(N, dtype=vt)
+    pm = np.empty(N, dtype=rt)
     for k in range(S):
         off = N + k * Cn
-        hk = h[k]
+        hk = h_c[k]
         for p in range(n):
             a[0, p] = q[off + p] * qmask[off + p]
             a[1, p] = q[off + n + p] * qmask[off + n + p]
@@ -1036,19 +1119,20 @@ def partials_one(q, qmask, D, L, Ls, EI, GJ, coef, tau, psi0, start, h, present,
             for p in range(n):
                 c[j, p] = q[off + (2 + j) * n + p] * qmask[off + (2 + j) * n + p]
             pm[j] = curved[k, j] * presc[k]
-            Z0[j] = horner_integral(coef, j, start[k] - tau[j])
+            Z0[j] = horner_integral(coef, j, start_c[k] - tau_c[j])
             Gp[j] = 0.0
-        s_loc = 0.0
+        s_loc = 0.0 * hk
         for i in range(Q):
-            s_node = start[k] + 0.5 * (xq[i] + 1.0) * hk
+            s_node = start_c[k] + 0.5 * (xq[i] + 1.0) * hk
             frac = 0.5 * (xq[i] + 1.0)
-            ux = 0.0
-            uy = 0.0
+            Wki = W[k, i] + 0.5 * wq[i] * active[k] * (hk - h[k])
+            ux = 0.0 * hk
+            uy = 0.0 * hk
             for p in range(n):
                 ux += a[0, p] * phi[i, p]
                 uy += a[1, p] * phi[i, p]
             for j in range(N):
-                t = s_node - tau[j]
+                t = s_node - tau_c[j]
                 for cc in range(3):
                     us[j, cc] = horner(coef, j, cc, t) * curved[k, j]
                 lq = 0.0
@@ -1059,8 +1143,8 @@ def partials_one(q, qmask, D, L, Ls, EI, GJ, coef, tau, psi0, start, h, present,
                 locq[j] = lq
                 ps = (psi_start[j] + 0.5 * hk * lq
                       + (horner_integral(coef, j, t) - Z0[j]) * pm[j])
-                cs[j] = math.cos(ps)
-                sn[j] = math.sin(ps)
+                cs[j] = np.cos(ps)
+                sn[j] = np.sin(ps)
                 Rx[j] = cs[j] * us[j, 0] - sn[j] * us[j, 1]
                 Ry[j] = sn[j] * us[j, 0] + cs[j] * us[j, 1]
                 dp[j] = d1 + pm[j] * us[j, 2]
@@ -1068,8 +1152,10 @@ def partials_one(q, qmask, D, L, Ls, EI, GJ, coef, tau, psi0, start, h, present,
                 held = presc[k] * present[k, j]
                 ux += held * Rx[j]
                 uy += held * Ry[j]
-            dens = 0.0
-            gsum = 0.0
+            dens = 0.0 * hk
+            gsum = 0.0 * hk
+            Gx = 0.0 * hk
+            Gy = 0.0 * hk
             for j in range(N):
                 EIp = EI[j] * present[k, j]
                 GJp = GJ[j] * present[k, j]
@@ -1077,21 +1163,32 @@ def partials_one(q, qmask, D, L, Ls, EI, GJ, coef, tau, psi0, start, h, present,
                 ey = uy - Ry[j]
                 tors = dp[j] - us[j, 2]
                 dens += 0.5 * EIp * (ex * ex + ey * ey) + 0.5 * GJp * tors * tors
-                gpsi = W[k, i] * EIp * (Ry[j] * ux - Rx[j] * uy)
+                gpsi = Wki * EIp * (Ry[j] * ux - Rx[j] * uy)
                 Gp[j] += gpsi
                 s_loc += gpsi * 0.5 * locq[j]
-                t = s_node - tau[j]
+                t = s_node - tau_c[j]
                 dx = horner_derivative(coef, j, 0, t) * curved[k, j]
                 dy = horner_derivative(coef, j, 1, t) * curved[k, j]
                 dz = horner_derivative(coef, j, 2, t) * curved[k, j]
                 px = cs[j] * dx - sn[j] * dy
                 py = sn[j] * dx + cs[j] * dy
-                gstar = -W[k, i] * (EIp * (ex * px + ey * py) + GJp * tors * dz)
+                gstar = -Wki * (EIp * (ex * px + ey * py) + GJp * tors * dz)
                 gsum += gstar
                 tau_D[j] += gstar
+                if want_g:
+                    Gx += EIp * ex
+                    Gy += EIp * ey
+                    base = off + (2 + j) * n
+                    for p in range(n):
+                        g[base + p] += (gpsi * 0.5 * hk * Qb[i, p]
+                                        + Wki * GJp * tors * phi[i, p]) * qmask[base + p]
             for l in range(N):
                 tau_D[l] += (dens * 0.5 * wq[i] * dh[k, l] * active[k]
                              + gsum * (dstart[k, l] + frac * dh[k, l]))
+            if want_g:
+                for p in range(n):
+                    g[off + p] += Wki * Gx * phi[i, p] * qmask[off + p]
+                    g[off + n + p] += Wki * Gy * phi[i, p] * qmask[off + n + p]
         for l in range(N):
             acc = s_loc * dh[k, l] + g0[l] * Gp[l]
             for j in range(N):
@@ -1099,10 +1196,53 @@ def partials_one(q, qmask, D, L, Ls, EI, GJ, coef, tau, psi0, start, h, present,
             tau_D[l] += acc
             tau_A[l] += Gp[l]
         for j in range(N):
+            Gps[k, j] = Gp[j]
             for l in range(N):
                 before[j, l] += dh[k, l] * c[j, 0]
-            psi_start[j] += hk * c[j, 0] + (horner_integral(coef, j, start[k] - tau[j] + hk)
+            psi_start[j] += hk * c[j, 0] + (horner_integral(coef, j, start_c[k] - tau_c[j] + hk)
                                             - Z0[j]) * pm[j]
+    if want_g:
+        # the angles of section k carry D_j w_j and h_k' c_k'j0 of every earlier section k'
+        for k in range(S - 1, -1, -1):
+            off = N + k * Cn
+            for j in range(N):
+                g[off + (2 + j) * n] += h_c[k] * after[j] * qmask[off + (2 + j) * n]
+                after[j] += Gps[k, j]
+        for j in range(N):
+            g[j] = (g[j] + Dc[j] * after[j]) * qmask[j]
+
+
+@_jit
+def stiffness_rows_one(q, qmask, D, L, Ls, EI, GJ, coef, tau, psi0, start, h, present, curved,
+                       active, presc, W, xq, wq, phi, Qb, Gq, X):
+    """One element's rows of the unloaded energy's Hessian at fixed q along the ``m =
+    Gq.shape[0]`` directions ``D_1..D_N`` then (``m = 2N``) ``alpha_1..alpha_N``: ``Gq[d]
+    (nq,)`` the gradient's derivative (zero on inactive coordinates; ``U_qx`` column ``d``)
+    and ``X[d] (2N,)`` that of ``(tau_D, tau_alpha)`` (``U_xx`` column ``d``), by a complex
+    step of :func:`partials_core` per direction (exact to rounding: no difference is taken)."""
+    N = D.shape[0]
+    nq = q.shape[0]
+    eps = 1e-20
+    Dc = np.empty(N, dtype=np.complex128)
+    dA = np.empty(N, dtype=np.complex128)
+    g = np.empty(nq, dtype=np.complex128)
+    tD = np.empty(N, dtype=np.complex128)
+    tA = np.empty(N, dtype=np.complex128)
+    for d in range(Gq.shape[0]):
+        for j in range(N):
+            Dc[j] = D[j]
+            dA[j] = 0.0
+        if d < N:
+            Dc[d] = D[d] + 1j * eps
+        else:
+            dA[d - N] = 1j * eps
+        partials_core(q, Dc, dA, qmask, D, L, Ls, EI, GJ, coef, tau, psi0, start, h, present,
+                      curved, active, presc, W, xq, wq, phi, Qb, True, g, tD, tA)
+        for m in range(nq):
+            Gq[d, m] = g[m].imag / eps
+        for j in range(N):
+            X[d, j] = tD[j].imag / eps
+            X[d, N + j] = tA[j].imag / eps
 
 
 @cached_jit(nogil=True)
@@ -1121,6 +1261,24 @@ def _partials_parallel(q, qmask, D, L, Ls, EI, GJ, coef, tau, psi0, start, h, pr
         partials_one(q[b], qmask[b], D[b], L[b], Ls[b], EI[b], GJ[b], coef[b], tau[b], psi0[b],
                      start[b], h[b], present[b], curved[b], active[b], presc[b], W[b], xq, wq,
                      phi, Qb, tau_D[b], tau_A[b])
+
+
+@cached_jit(nogil=True)
+def _stiffness_serial(q, qmask, D, L, Ls, EI, GJ, coef, tau, psi0, start, h, present, curved,
+                      active, presc, W, xq, wq, phi, Qb, Gq, X):
+    for b in range(q.shape[0]):
+        stiffness_rows_one(q[b], qmask[b], D[b], L[b], Ls[b], EI[b], GJ[b], coef[b], tau[b],
+                           psi0[b], start[b], h[b], present[b], curved[b], active[b], presc[b],
+                           W[b], xq, wq, phi, Qb, Gq[b], X[b])
+
+
+@cached_jit(nogil=True, parallel=True)
+def _stiffness_parallel(q, qmask, D, L, Ls, EI, GJ, coef, tau, psi0, start, h, present, curved,
+                        active, presc, W, xq, wq, phi, Qb, Gq, X):
+    for b in prange(q.shape[0]):
+        stiffness_rows_one(q[b], qmask[b], D[b], L[b], Ls[b], EI[b], GJ[b], coef[b], tau[b],
+                           psi0[b], start[b], h[b], present[b], curved[b], active[b], presc[b],
+                           W[b], xq, wq, phi, Qb, Gq[b], X[b])
 
 
 @_jit

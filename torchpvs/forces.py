@@ -29,7 +29,7 @@ from .sections import Discretization, Layout, Tables, build_layout, tube_rows
 
 __all__ = ["KINK_DELTA", "KINK_TOL", "ForceState", "closed_form_partials", "envelope_forces",
            "envelope_forces_autograd", "envelope_forces_closed_form", "equilibrium_forces",
-           "kink_mask", "paper_actuation", "paper_scope_check"]
+           "actuation_rows", "kink_mask", "paper_actuation", "paper_scope_check"]
 
 
 class ForceState(NamedTuple):
@@ -209,6 +209,35 @@ def closed_form_partials(q, lay: Layout, tubes, tab: Tables, disc: Discretizatio
     tau_D = tau_D + torch.einsum("bsqj,bsql->bl", gstar, ds) + gstar.sum((1, 2))
     tau_A = Gp.sum(1)
     return tau_D, tau_A
+
+
+def actuation_rows(q: torch.Tensor, tubes, D: torch.Tensor, alpha: torch.Tensor,
+                   loaded: torch.Tensor, tab: Tables, disc: Discretization,
+                   rotations: bool = False):
+    """Rows of the unloaded energy's Hessian at fixed ``q (B, nq)`` for the actuators ``x`` =
+    the insertions (``m = N`` rows) or, with ``rotations``, the insertions then the rotations
+    (``m = 2N``): ``(U_xq (B, m, nq), U_xD (B, m, N), U_xalpha (B, m, N), qmask (B, nq))``,
+    ``qmask`` the active coordinates of the layout at ``D`` (a kernel's
+    :attr:`~torchpvs.kernel.Kernel.actuation_rows`, for the actuator stiffness
+    :func:`torchpvs.jacobians.actuator_stiffness`). :func:`closed_form_partials`
+    differentiated once, in ONE reverse pass over the batch repeated ``m`` times (replica ``r``
+    of an element back-propagates its ``tau_x[r]``): the torch op count, not the flops, bounds
+    it at small batches. ``tubes`` broadcastable to ``(B, N)``; ``loaded (B,)`` the layout's
+    load flags."""
+    B, N = D.shape
+    m = 2 * N if rotations else N
+    idx = torch.arange(B, device=D.device).repeat_interleave(m)
+    tb = tube_rows(tubes, idx)
+    qr, Dr, Ar = (t.detach()[idx].requires_grad_(True) for t in (q, D, alpha))
+    zero = torch.zeros(B * m, 3, dtype=q.dtype, device=q.device)
+    pick = torch.eye(m, dtype=q.dtype, device=q.device).repeat(B, 1)        # (B m, m)
+    with torch.enable_grad():
+        lay = build_layout(tb, Dr, Ar, zero, zero, loaded[idx], disc)
+        tau = closed_form_partials(qr, lay, tb, tab, disc)
+        tau = torch.cat(tau, -1) if rotations else tau[0]
+        Gq, GD, GA = (g.reshape(B, m, -1) for g in
+                      torch.autograd.grad((tau * pick).sum(), (qr, Dr, Ar)))
+    return Gq, GD, GA, lay.qmask.detach().reshape(B, m, -1)[:, 0]
 
 
 def paper_scope_check(tubes, D: torch.Tensor, loaded: torch.Tensor, tol: float = 1e-12) -> None:

@@ -31,6 +31,7 @@ import torch
 
 from .forces import KINK_DELTA, closed_form_partials, kink_mask
 from .implicit import adjoint_factor, differentiable_outputs
+from .kernel import KERNELS
 from .mechanics import potential, skew_vee, tip_pose
 from .sections import TubeTensors, build_layout, tube_rows
 
@@ -204,6 +205,13 @@ def _schur(eq, rows: torch.Tensor, tip: bool = False, D=None):
     partials = None
     if bool((qmask[:, :N] > 0).all()) and bool((D0 > 0).all()):
         Uxq, Uxx, partials, lay_mask = _rotation_rows_from_hessian(eq, rows, D0, tip)
+    elif not ctx.implicit.with_load:
+        # every row from the kernel (compiled: a complex step per actuator, no graph)
+        info = ctx.implicit
+        Uxq, UxD, UxA, lay_mask = KERNELS[ctx.options.kernel].actuation_rows(
+            eq.q.detach()[rows], tube_rows(ctx.tubes, rows), D0,
+            ctx.rotation.detach()[rows], info.loaded[rows], info.tab, info.disc, True)
+        Uxx = torch.cat([UxD, UxA], -1)
     else:
         q, info, (D, A, F, M), tubes = _replicated(eq, m, rows, D)
         D.requires_grad_(True)
@@ -318,6 +326,14 @@ def _rotation_rows_from_hessian(eq, rows, D0, tip: bool = False):
     partials ``(P_q, P_x)`` of :func:`_tip_partials`: one layout and one reverse pass for the
     whole control step (the op count, not the flops, bounds it at small batches)."""
     B, N = D0.shape
+    ctx = eq.context
+    if not tip and not ctx.implicit.with_load:
+        # the kernel's rows (compiled: a complex step per insertion, no graph)
+        info = ctx.implicit
+        UDq, UDD, UDA, lay_mask = KERNELS[ctx.options.kernel].actuation_rows(
+            eq.q.detach()[rows], tube_rows(ctx.tubes, rows), D0,
+            ctx.rotation.detach()[rows], info.loaded[rows], info.tab, info.disc)
+        return (*_with_rotation_rows(eq, rows, D0, UDq, UDD, UDA), None, lay_mask)
     m = N + 6 * tip
     q, info, (D, A, F, M), tubes = _replicated(eq, m, rows, D0)
     pick = torch.eye(m, dtype=q.dtype, device=q.device).repeat(B, 1)        # (B m, m)
@@ -336,6 +352,14 @@ def _rotation_rows_from_hessian(eq, rows, D0, tip: bool = False):
                       torch.autograd.grad((out * pick).sum(), (q, D, A)))
     partials = (_tip_rows(eq, rows, *(g[:, N:] for g in (Gq, GD, GA))) if tip else None)
     UDq, UDD, UDA = (g[:, :N] for g in (Gq, GD, GA))
+    Uxq, Uxx = _with_rotation_rows(eq, rows, D0, UDq, UDD, UDA)
+    return Uxq, Uxx, partials, lay.qmask.reshape(B, m, -1)[:, 0]
+
+
+def _with_rotation_rows(eq, rows, D0, UDq, UDD, UDA):
+    """``(U_xq (B, 2N, nq), U_xx (B, 2N, 2N))`` from the insertion rows and the rotation rows
+    read off the equilibrium's Hessian (:func:`_rotation_rows_from_hessian`)."""
+    B, N = D0.shape
     Hw = eq.context.implicit.hessian()[rows, :N]            # (B, N, nq): the guide twists' rows
     GJ = tube_rows(eq.context.tubes, rows).GJ.detach().expand(B, N)
     GJD = torch.diag_embed(GJ * D0)                                         # (B, N, N)
@@ -346,7 +370,7 @@ def _rotation_rows_from_hessian(eq, rows, D0, tip: bool = False):
     Uxq = torch.cat([UDq, UAq], 1)
     Uxx = torch.cat([torch.cat([UDD, UDA], -1),
                      torch.cat([UDA.transpose(1, 2), UAA], -1)], 1)
-    return Uxq, Uxx, partials, lay.qmask.reshape(B, m, -1)[:, 0]
+    return Uxq, Uxx
 
 
 def control_jacobians(eq, *, compliance: bool = True,

@@ -26,7 +26,7 @@ import torch
 
 from . import compiled
 from .batch_linalg import active_index, chunked, compact, compact_scaled, expand, spd_solve, take
-from .forces import closed_form_partials
+from .forces import actuation_rows, closed_form_partials
 from .mechanics import (
     Maps,
     compact_q,
@@ -37,7 +37,7 @@ from .mechanics import (
     tip_pose,
 )
 from .newton import NewtonResult, Problem, derivatives, newton, scaled_residual
-from .sections import Discretization, Layout, Tables, n_coordinates
+from .sections import Discretization, Layout, Tables, build_layout, n_coordinates
 
 __all__ = ["COMPILED", "EAGER", "KERNELS", "Kernel", "default_guess", "new_section_step",
            "newton_step"]
@@ -70,6 +70,12 @@ class Kernel(NamedTuple):
             ``(B, N)`` [N, N·m]: the envelope partials of the unloaded energy at fixed ``q``
             (:func:`torchpvs.forces.closed_form_partials`; ``constants`` its node constants
             or None), for the actuation forces and their one-sided values at kinks.
+        actuation_rows: ``actuation_rows(q, tubes, D, alpha, loaded, tab, disc, rotations)
+            -> (U_xq (B, m, nq), U_xD (B, m, N), U_xalpha (B, m, N), qmask (B, nq))``: the
+            insertions' (``m = N``) or all actuators' (``rotations``, ``m = 2N``) rows of the
+            unloaded energy's Hessian at fixed ``q`` and the layout's coordinate mask at ``D``
+            (:func:`torchpvs.forces.actuation_rows`), for the actuator stiffness
+            (:func:`torchpvs.jacobians.actuator_stiffness`).
     """
 
     guess: Callable[..., torch.Tensor]
@@ -79,6 +85,7 @@ class Kernel(NamedTuple):
     pose: Callable[..., tuple]
     spd_solve: Callable[[torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
     partials: Callable[..., tuple[torch.Tensor, torch.Tensor]]
+    actuation_rows: Callable[..., tuple]
 
 
 def newton_step(q: torch.Tensor, prob: Problem) -> tuple[torch.Tensor, torch.Tensor]:
@@ -189,7 +196,7 @@ def default_guess(lay: Layout, maps: Maps, tab: Tables, disc: Discretization,
 #: The reference kernel: batched eager torch on any device.
 EAGER = Kernel(guess=default_guess, solve=newton, step=newton_step,
                section_step=new_section_step, pose=tip_pose, spd_solve=spd_solve,
-               partials=closed_form_partials)
+               partials=closed_form_partials, actuation_rows=actuation_rows)
 
 
 def _compiled_solve(q, prob, L_char, **kwargs):
@@ -212,18 +219,32 @@ def _compiled_partials(q, lay, tubes, tab, disc, constants=None):
     return closed_form_partials(q, lay, tubes, tab, disc, constants) if out is None else out
 
 
+def _compiled_actuation_rows(q, tubes, D, alpha, loaded, tab, disc, rotations=False):
+    if compiled.available() and q.device.type == "cpu":
+        B, N = D.shape
+        with torch.no_grad():
+            zero = torch.zeros(B, 3, dtype=q.dtype, device=q.device)
+            lay = build_layout(tubes, D.detach(), alpha.detach(), zero, zero, loaded, disc)
+            out = compiled.stiffness_rows(q.detach(), lay, tubes.map(torch.Tensor.detach), tab,
+                                          rotations)
+        if out is not None:
+            return (*out, lay.qmask)
+    return actuation_rows(q, tubes, D, alpha, loaded, tab, disc, rotations)
+
+
 def _compiled_pose(q, lay, tab, constants):
     out = compiled.pose(q, lay, tab, constants)
     return tip_pose(q, lay, tab, constants) if out is None else out
 
 
 #: The compiled CPU kernel (:mod:`torchpvs.compiled`, numba): the Newton solve and step, the
-#: new-section step, the tip pose and the closed-form force partials per element; the eager
+#: new-section step, the tip pose, the closed-form force partials and the stiffness's actuator
+#: rows (a complex step of the partials) per element; the eager
 #: kernel wherever it does not apply (GPU tensors; a tip moment for the solve and step, a tip
 #: load for the new-section step; partials that must carry a graph).
 COMPILED = EAGER._replace(solve=_compiled_solve, step=_compiled_step,
                           section_step=_compiled_section_step, pose=_compiled_pose,
-                          partials=_compiled_partials)
+                          partials=_compiled_partials, actuation_rows=_compiled_actuation_rows)
 
 #: Kernels by name (``SolverOptions.kernel``).
 KERNELS: dict[str, Kernel] = {"newton": EAGER, "compiled": COMPILED}
