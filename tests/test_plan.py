@@ -97,3 +97,21 @@ def test_tube_rows_equal_in_value_reuse_the_layout_and_others_do_not(monkeypatch
     ref = tp.solve(scene, rotation=[0.0, 1.5], initial=eq0)
     assert torch.equal(eq1.actuation_forces, ref.actuation_forces)
     assert torch.equal(eq1.actuation_forces_insertion, ref.actuation_forces_insertion)
+
+
+def test_a_reused_layout_is_the_layout_built_afresh():
+    """``Plan.reused_layout`` (the actuator stiffness reads the solve's layout instead of
+    building one): after a solve, every field equals ``build_layout`` at the same insertions
+    with the new rotations and no load; at other insertions there is none."""
+    from torchpvs.sections import build_layout
+    sc = tp.load_scene("renda2021_fig3")
+    D = torch.tensor([[0.05, 0.15], [0.02, 0.2]], dtype=torch.float64)
+    eq = tp.solve(sc, insertion=D, rotation=torch.zeros(2, 2, dtype=torch.float64))
+    ctx, info = eq.context, eq.context.implicit
+    A = torch.tensor([[0.4, -1.0], [2.0, 0.3]], dtype=torch.float64)
+    lay = ctx.plan.reused_layout(ctx.tubes, D, A, info.loaded, info.disc)
+    zero = torch.zeros(2, 3, dtype=torch.float64)
+    ref = build_layout(ctx.tubes, D, A, zero, zero, info.loaded, info.disc)
+    for name, a, b in zip(ref._fields, lay, ref, strict=True):
+        assert a.shape == b.shape and torch.allclose(a.to(b.dtype), b, rtol=1e-15, atol=0), name
+    assert ctx.plan.reused_layout(ctx.tubes, D + 1e-3, A, info.loaded, info.disc) is None

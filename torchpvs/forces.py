@@ -213,7 +213,7 @@ def closed_form_partials(q, lay: Layout, tubes, tab: Tables, disc: Discretizatio
 
 def actuation_rows(q: torch.Tensor, tubes, D: torch.Tensor, alpha: torch.Tensor,
                    loaded: torch.Tensor, tab: Tables, disc: Discretization,
-                   rotations: bool = False):
+                   rotations: bool = False, layout: Layout | None = None):
     """Rows of the unloaded energy's Hessian at fixed ``q (B, nq)`` for the actuators ``x`` =
     the insertions (``m = N`` rows) or, with ``rotations``, the insertions then the rotations
     (``m = 2N``): ``(U_xq (B, m, nq), U_xD (B, m, N), U_xalpha (B, m, N), qmask (B, nq))``,
@@ -223,7 +223,8 @@ def actuation_rows(q: torch.Tensor, tubes, D: torch.Tensor, alpha: torch.Tensor,
     differentiated once, in ONE reverse pass over the batch repeated ``m`` times (replica ``r``
     of an element back-propagates its ``tau_x[r]``): the torch op count, not the flops, bounds
     it at small batches. ``tubes`` broadcastable to ``(B, N)``; ``loaded (B,)`` the layout's
-    load flags."""
+    load flags; ``layout``: the layout at ``D`` and ``alpha`` where the caller has it (unused
+    here: the reverse pass needs its own, built from inputs that require grad)."""
     B, N = D.shape
     m = 2 * N if rotations else N
     idx = torch.arange(B, device=D.device).repeat_interleave(m)

@@ -204,13 +204,11 @@ def _schur(eq, rows: torch.Tensor, tip: bool = False, D=None):
     D0 = ctx.insertion.detach()[rows] if D is None else D
     partials = None
     if bool((qmask[:, :N] > 0).all()) and bool((D0 > 0).all()):
-        Uxq, Uxx, partials, lay_mask = _rotation_rows_from_hessian(eq, rows, D0, tip)
+        Uxq, Uxx, partials, lay_mask = _rotation_rows_from_hessian(eq, rows, D0, tip,
+                                                                   own=D is None)
     elif not ctx.implicit.with_load:
         # every row from the kernel (compiled: a complex step per actuator, no graph)
-        info = ctx.implicit
-        Uxq, UxD, UxA, lay_mask = KERNELS[ctx.options.kernel].actuation_rows(
-            eq.q.detach()[rows], tube_rows(ctx.tubes, rows), D0,
-            ctx.rotation.detach()[rows], info.loaded[rows], info.tab, info.disc, True)
+        Uxq, UxD, UxA, lay_mask = _kernel_rows(eq, rows, D0, D is None, True)
         Uxx = torch.cat([UxD, UxA], -1)
     else:
         q, info, (D, A, F, M), tubes = _replicated(eq, m, rows, D)
@@ -312,7 +310,24 @@ def _implicit_rows(eq, rows: torch.Tensor, *, stiffness: bool, tip: bool) -> tor
     return torch.cat([GD, GA], -1).reshape(B, m, n)
 
 
-def _rotation_rows_from_hessian(eq, rows, D0, tip: bool = False):
+def _kernel_rows(eq, rows, D0, own: bool, rotations: bool):
+    """The equilibrium's kernel's :attr:`~torchpvs.kernel.Kernel.actuation_rows` of batch
+    ``rows`` at insertions ``D0`` (``own``: the equilibrium's, whose layout the solve's plan
+    may still hold), unloaded."""
+    ctx = eq.context
+    info = ctx.implicit
+    A = ctx.rotation.detach()
+    lay = None
+    if own and ctx.plan is not None:
+        full = ctx.plan.reused_layout(ctx.tubes, ctx.insertion.detach(), A, info.loaded,
+                                      info.disc)
+        lay = None if full is None else type(full)._make(t[rows] for t in full)
+    return KERNELS[ctx.options.kernel].actuation_rows(
+        eq.q.detach()[rows], tube_rows(ctx.tubes, rows), D0, A[rows], info.loaded[rows],
+        info.tab, info.disc, rotations, lay)
+
+
+def _rotation_rows_from_hessian(eq, rows, D0, tip: bool = False, own: bool = False):
     """``(U_xq (B, 2N, nq), U_xx (B, 2N, 2N), tip partials or None, the layout's qmask
     (B, nq))`` with the insertion rows
     by one double-backward pass over the batch repeated ``N`` times (not ``2N``) and the
@@ -329,10 +344,7 @@ def _rotation_rows_from_hessian(eq, rows, D0, tip: bool = False):
     ctx = eq.context
     if not tip and not ctx.implicit.with_load:
         # the kernel's rows (compiled: a complex step per insertion, no graph)
-        info = ctx.implicit
-        UDq, UDD, UDA, lay_mask = KERNELS[ctx.options.kernel].actuation_rows(
-            eq.q.detach()[rows], tube_rows(ctx.tubes, rows), D0,
-            ctx.rotation.detach()[rows], info.loaded[rows], info.tab, info.disc)
+        UDq, UDD, UDA, lay_mask = _kernel_rows(eq, rows, D0, own, False)
         return (*_with_rotation_rows(eq, rows, D0, UDq, UDD, UDA), None, lay_mask)
     m = N + 6 * tip
     q, info, (D, A, F, M), tubes = _replicated(eq, m, rows, D0)

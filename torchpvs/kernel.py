@@ -70,8 +70,9 @@ class Kernel(NamedTuple):
             ``(B, N)`` [N, N·m]: the envelope partials of the unloaded energy at fixed ``q``
             (:func:`torchpvs.forces.closed_form_partials`; ``constants`` its node constants
             or None), for the actuation forces and their one-sided values at kinks.
-        actuation_rows: ``actuation_rows(q, tubes, D, alpha, loaded, tab, disc, rotations)
-            -> (U_xq (B, m, nq), U_xD (B, m, N), U_xalpha (B, m, N), qmask (B, nq))``: the
+        actuation_rows: ``actuation_rows(q, tubes, D, alpha, loaded, tab, disc, rotations,
+            layout) -> (U_xq (B, m, nq), U_xD (B, m, N), U_xalpha (B, m, N), qmask (B, nq))``
+            (``layout``: the :class:`~torchpvs.sections.Layout` at ``D`` where known): the
             insertions' (``m = N``) or all actuators' (``rotations``, ``m = 2N``) rows of the
             unloaded energy's Hessian at fixed ``q`` and the layout's coordinate mask at ``D``
             (:func:`torchpvs.forces.actuation_rows`), for the actuator stiffness
@@ -219,12 +220,15 @@ def _compiled_partials(q, lay, tubes, tab, disc, constants=None):
     return closed_form_partials(q, lay, tubes, tab, disc, constants) if out is None else out
 
 
-def _compiled_actuation_rows(q, tubes, D, alpha, loaded, tab, disc, rotations=False):
+def _compiled_actuation_rows(q, tubes, D, alpha, loaded, tab, disc, rotations=False,
+                             layout=None):
     if compiled.available() and q.device.type == "cpu":
         B, N = D.shape
         with torch.no_grad():
-            zero = torch.zeros(B, 3, dtype=q.dtype, device=q.device)
-            lay = build_layout(tubes, D.detach(), alpha.detach(), zero, zero, loaded, disc)
+            lay = layout
+            if lay is None:
+                zero = torch.zeros(B, 3, dtype=q.dtype, device=q.device)
+                lay = build_layout(tubes, D.detach(), alpha.detach(), zero, zero, loaded, disc)
             out = compiled.stiffness_rows(q.detach(), lay, tubes.map(torch.Tensor.detach), tab,
                                           rotations)
         if out is not None:

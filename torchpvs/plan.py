@@ -96,6 +96,18 @@ class Plan:
                 self._memo.pop(next(iter(self._memo)))
         return lay, maps
 
+    def reused_layout(self, tubes: TubeTensors, D, A, loaded,
+                      disc: Discretization) -> Layout | None:
+        """The layout :meth:`layout` would return without building one: the last one at these
+        insertions, loaded mask, discretization and tubes with the rotations ``A`` (and no
+        load), or None where there is none (the caller then builds its own)."""
+        memo = self._memo.get((disc, D.shape))
+        if (memo is None or not _same_tubes(memo.tubes, tubes) or not torch.equal(memo.D, D)
+                or not torch.equal(memo.loaded, loaded)):
+            return None
+        zero = torch.zeros_like(memo.lay.force)
+        return memo.lay._replace(psi0=memo.psi0_guide + A, alpha=A, force=zero, moment=zero)
+
     def cached(self, disc: Discretization, lay, key: Hashable, compute):
         """``compute()`` for a layout ``lay`` that :meth:`layout` returned for ``disc``, kept
         under ``key`` (what is computed and its parameters, e.g. ``("kinks", delta, tol)``)
