@@ -31,7 +31,7 @@ import torch
 
 from .forces import KINK_DELTA, closed_form_partials, kink_mask
 from .implicit import adjoint_factor, differentiable_outputs
-from .kernel import KERNELS
+from .kernel import EAGER, KERNELS
 from .mechanics import potential, skew_vee, tip_pose
 from .sections import TubeTensors, build_layout, tube_rows
 
@@ -342,10 +342,15 @@ def _rotation_rows_from_hessian(eq, rows, D0, tip: bool = False, own: bool = Fal
     whole control step (the op count, not the flops, bounds it at small batches)."""
     B, N = D0.shape
     ctx = eq.context
-    if not tip and not ctx.implicit.with_load:
-        # the kernel's rows (compiled: a complex step per insertion, no graph)
+    kernel = KERNELS[ctx.options.kernel]
+    if not ctx.implicit.with_load and (not tip or kernel.actuation_rows
+                                       is not EAGER.actuation_rows):
+        # the kernel's rows (compiled: a complex step per insertion, no graph); the tip
+        # partials then by their own reverse pass (6 rows), which is cheaper than one pass
+        # through both graphs only when the rows' graph is not needed
         UDq, UDD, UDA, lay_mask = _kernel_rows(eq, rows, D0, own, False)
-        return (*_with_rotation_rows(eq, rows, D0, UDq, UDD, UDA), None, lay_mask)
+        partials = _tip_partials(eq, rows, None if own else D0) if tip else None
+        return (*_with_rotation_rows(eq, rows, D0, UDq, UDD, UDA), partials, lay_mask)
     m = N + 6 * tip
     q, info, (D, A, F, M), tubes = _replicated(eq, m, rows, D0)
     pick = torch.eye(m, dtype=q.dtype, device=q.device).repeat(B, 1)        # (B m, m)
