@@ -20,7 +20,11 @@ default options. Cases:
 
 Printed: ms per call (best of ``--repeat``), each case's ratio to the solve alone and the
 closed form's speed-up over the autograd rows, plus the largest difference between the two
-Jacobians (a check that both compute the same thing). Run it on an idle machine.
+Jacobians (a check that both compute the same thing; on the Fig. 3 robot they differ in the
+``D_1`` column by design: its scene's ``D_1`` puts the outer tube's straight-to-curved
+transition exactly at the orifice, a kink of ``U*(D_1)`` where the closed form reports the
+retracting side's one-sided derivative and autograd the layout's own tie rule, which is
+neither; docs/actuation-forces.md). Run it on an idle machine.
 """
 
 from __future__ import annotations
