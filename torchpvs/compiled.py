@@ -994,9 +994,22 @@ def partials_one(q, qmask, D, L, Ls, EI, GJ, coef, tau, psi0, start, h, present,
     """One element's ``(dU/dD, dU/dalpha)`` at fixed q into tau_D, tau_A (N,)
     (forces.closed_form_partials term by term, on the layout's S sections, prescribed ones
     included; the node fields of mechanics.node_fields)."""
-    partials_core(q, D, np.zeros(D.shape[0], dtype=D.dtype), qmask, D, L, Ls, EI, GJ, coef,
-                  tau, psi0, start, h, present, curved, active, presc, W, xq, wq, phi, Qb,
-                  False, tau_D, tau_D, tau_A)
+    # tau_A, zeroed, doubles as the zero rotation step: partials_core reads dA[j] before it
+    # writes tau_A[j], and never after (no allocation on this hot path)
+    tau_A[:] = 0.0
+    partials_core(q, D, tau_A, qmask, D, L, Ls, EI, GJ, coef, tau, psi0, start, h, present,
+                  curved, active, presc, W, xq, wq, phi, Qb, False, tau_D, tau_D, tau_A)
+
+
+@_jit
+def section_moved(start, h, dstart, dh, k, Dc, D):
+    """Section ``k``'s start and length at the insertions ``Dc`` (along the cut slopes)."""
+    sk = start[k] + 0.0 * Dc[0]
+    hk = h[k] + 0.0 * Dc[0]
+    for l in range(D.shape[0]):
+        sk += dstart[k, l] * (Dc[l] - D[l])
+        hk += dh[k, l] * (Dc[l] - D[l])
+    return sk, hk
 
 
 @_jit
@@ -1056,22 +1069,8 @@ def partials_core(q, Dc, dA, qmask, D, L, Ls, EI, GJ, coef, tau, psi0, start, h,
         if k + 1 < S:
             dstart[k + 1, l] = dsrc[perm[k]]
             dh[k + 1, l] -= dsrc[perm[k]]
-    # the layout at Dc: starts, lengths and transitions moved along their slopes
-    dD = np.empty(N, dtype=vt)
-    tau_c = np.empty(N, dtype=vt)
-    psi0_c = np.empty(N, dtype=vt)
-    for j in range(N):
-        dD[j] = Dc[j] - D[j]
-        tau_c[j] = tau[j] - dD[j]
-        psi0_c[j] = psi0[j] + dA[j]
-    start_c = np.empty(S, dtype=vt)
-    h_c = np.empty(S, dtype=vt)
-    for k in range(S):
-        start_c[k] = start[k]
-        h_c[k] = h[k]
-        for l in range(N):
-            start_c[k] += dstart[k, l] * dD[l]
-            h_c[k] += dh[k, l] * dD[l]
+    # the layout at Dc: starts, lengths and transitions moved along their slopes, each
+    # computed where it is used (tau_j - (Dc_j - D_j), section_moved) to allocate nothing
     if want_g:
         for m in range(g.shape[0]):
             g[m] = 0.0
@@ -1084,19 +1083,22 @@ def partials_core(q, Dc, dA, qmask, D, L, Ls, EI, GJ, coef, tau, psi0, start, h,
         dmin = 1.0 if D[j] < L[j] else (0.0 if D[j] > L[j] else 0.5)
         dtg = dmin if Dm - Ls[j] >= 0 else 0.0
         tg_r = max(Dm - Ls[j], 0.0)
-        tg = tg_r + dtg * dD[j]
+        tg = tg_r + dtg * (Dc[j] - D[j])
         ugx = horner(coef, j, 0, tg)
         ugy = horner(coef, j, 1, tg)
         tau_D[j] = 0.5 * GJ[j] * w * w + 0.5 * EI[j] * (ugx * ugx + ugy * ugy) * dtg
-        tau_A[j] = 0.0
         g0[j] = w + horner(coef, j, 2, tg) * dtg
-        psi_start[j] = (psi0_c[j] + horner_integral(coef, j, tg)
+        psi_start[j] = (psi0[j] + dA[j] + horner_integral(coef, j, tg)
                         - horner_integral(coef, j, tg_r) + Dc[j] * w)
+        tau_A[j] = 0.0
         if want_g:
             g[j] = GJ[j] * Dc[j] * w
     before = np.zeros((N, N), dtype=rt)       # (j, l): sum over k' < k of dh_k'l c_k'j0
-    after = np.zeros(N, dtype=vt)             # sum of Gp over the sections after k (g only)
-    Gps = np.zeros((S, N), dtype=vt)
+    # g only: Gp of every section, and in the last row the sum of Gp over the later sections
+    Gps = np.zeros((S + 1, N), dtype=vt)
+    ntau = np.empty(N, dtype=vt)              # -tau_j at Dc
+    for j in range(N):
+        ntau[j] = (Dc[j] - D[j]) - tau[j]
     a = np.empty((2, n), dtype=rt)
     c = np.empty((N, n), dtype=rt)
     Rx = np.empty(N, dtype=vt)
@@ -1111,7 +1113,8 @@ def partials_core(q, Dc, dA, qmask, D, L, Ls, EI, GJ, coef, tau, psi0, start, h,
     pm = np.empty(N, dtype=rt)
     for k in range(S):
         off = N + k * Cn
-        hk = h_c[k]
+        sk, hk = section_moved(start, h, dstart, dh, k, Dc, D)
+        dWk = 0.5 * active[k] * (hk - h[k])
         for p in range(n):
             a[0, p] = q[off + p] * qmask[off + p]
             a[1, p] = q[off + n + p] * qmask[off + n + p]
@@ -1119,20 +1122,20 @@ def partials_core(q, Dc, dA, qmask, D, L, Ls, EI, GJ, coef, tau, psi0, start, h,
             for p in range(n):
                 c[j, p] = q[off + (2 + j) * n + p] * qmask[off + (2 + j) * n + p]
             pm[j] = curved[k, j] * presc[k]
-            Z0[j] = horner_integral(coef, j, start_c[k] - tau_c[j])
+            Z0[j] = horner_integral(coef, j, sk + ntau[j])
             Gp[j] = 0.0
         s_loc = 0.0 * hk
         for i in range(Q):
-            s_node = start_c[k] + 0.5 * (xq[i] + 1.0) * hk
+            s_node = sk + 0.5 * (xq[i] + 1.0) * hk
             frac = 0.5 * (xq[i] + 1.0)
-            Wki = W[k, i] + 0.5 * wq[i] * active[k] * (hk - h[k])
+            Wki = W[k, i] + wq[i] * dWk
             ux = 0.0 * hk
             uy = 0.0 * hk
             for p in range(n):
                 ux += a[0, p] * phi[i, p]
                 uy += a[1, p] * phi[i, p]
             for j in range(N):
-                t = s_node - tau_c[j]
+                t = s_node + ntau[j]
                 for cc in range(3):
                     us[j, cc] = horner(coef, j, cc, t) * curved[k, j]
                 lq = 0.0
@@ -1166,7 +1169,7 @@ def partials_core(q, Dc, dA, qmask, D, L, Ls, EI, GJ, coef, tau, psi0, start, h,
                 gpsi = Wki * EIp * (Ry[j] * ux - Rx[j] * uy)
                 Gp[j] += gpsi
                 s_loc += gpsi * 0.5 * locq[j]
-                t = s_node - tau_c[j]
+                t = s_node + ntau[j]
                 dx = horner_derivative(coef, j, 0, t) * curved[k, j]
                 dy = horner_derivative(coef, j, 1, t) * curved[k, j]
                 dz = horner_derivative(coef, j, 2, t) * curved[k, j]
@@ -1199,17 +1202,18 @@ def partials_core(q, Dc, dA, qmask, D, L, Ls, EI, GJ, coef, tau, psi0, start, h,
             Gps[k, j] = Gp[j]
             for l in range(N):
                 before[j, l] += dh[k, l] * c[j, 0]
-            psi_start[j] += hk * c[j, 0] + (horner_integral(coef, j, start_c[k] - tau_c[j] + hk)
+            psi_start[j] += hk * c[j, 0] + (horner_integral(coef, j, sk + ntau[j] + hk)
                                             - Z0[j]) * pm[j]
     if want_g:
         # the angles of section k carry D_j w_j and h_k' c_k'j0 of every earlier section k'
         for k in range(S - 1, -1, -1):
             off = N + k * Cn
+            hk = section_moved(start, h, dstart, dh, k, Dc, D)[1]
             for j in range(N):
-                g[off + (2 + j) * n] += h_c[k] * after[j] * qmask[off + (2 + j) * n]
-                after[j] += Gps[k, j]
+                g[off + (2 + j) * n] += hk * Gps[S, j] * qmask[off + (2 + j) * n]
+                Gps[S, j] += Gps[k, j]
         for j in range(N):
-            g[j] = (g[j] + Dc[j] * after[j]) * qmask[j]
+            g[j] = (g[j] + Dc[j] * Gps[S, j]) * qmask[j]
 
 
 @_jit
