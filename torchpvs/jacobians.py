@@ -329,17 +329,19 @@ def _kernel_rows(eq, rows, D0, own: bool, rotations: bool):
 
 def _rotation_rows_from_hessian(eq, rows, D0, tip: bool = False, own: bool = False):
     """``(U_xq (B, 2N, nq), U_xx (B, 2N, 2N), tip partials or None, the layout's qmask
-    (B, nq))`` with the insertion rows
-    by one double-backward pass over the batch repeated ``N`` times (not ``2N``) and the
-    rotation rows read off the equilibrium's Hessian: the potential depends on ``alpha_j`` and
+    (B, nq))`` with the insertion rows from the kernel (:func:`_kernel_rows`: the compiled
+    kernel's complex step, no graph) for an unloaded energy, else by one double-backward pass
+    over the batch repeated ``N`` times (not ``2N``), and the rotation rows read off the
+    equilibrium's Hessian (``own``: ``D0`` is the equilibrium's insertion, not a kink's side): the potential depends on ``alpha_j`` and
     the guide twist ``w_j`` only through ``alpha_j + D_j w_j`` (plus the guide's
     ``1/2 GJ_j D_j w_j^2``), so where every ``D_j > 0`` (``w_j`` a coordinate)
     ``U_{alpha_j .} = (H[w_j, .] - GJ_j D_j e_{w_j}) / D_j`` and
     ``U_{alpha_j alpha_k} = (H[w_j, w_k] - delta_jk GJ_j D_j) / (D_j D_k)``.
 
-    With ``tip`` the same pass repeats the batch ``N + 6`` times and also gives the tip
-    partials ``(P_q, P_x)`` of :func:`_tip_partials`: one layout and one reverse pass for the
-    whole control step (the op count, not the flops, bounds it at small batches)."""
+    With ``tip`` the tip partials ``(P_q, P_x)`` of :func:`_tip_partials` too: on the eager
+    kernel (or under a load) the same pass repeats the batch ``N + 6`` times, one layout and
+    one reverse pass for the whole control step (the op count, not the flops, bounds it at
+    small batches); with compiled rows they take their own 6-row pass."""
     B, N = D0.shape
     ctx = eq.context
     kernel = KERNELS[ctx.options.kernel]
