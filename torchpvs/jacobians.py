@@ -332,7 +332,8 @@ def _rotation_rows_from_hessian(eq, rows, D0, tip: bool = False, own: bool = Fal
     (B, nq))`` with the insertion rows from the kernel (:func:`_kernel_rows`: the compiled
     kernel's complex step, no graph) for an unloaded energy, else by one double-backward pass
     over the batch repeated ``N`` times (not ``2N``), and the rotation rows read off the
-    equilibrium's Hessian (``own``: ``D0`` is the equilibrium's insertion, not a kink's side): the potential depends on ``alpha_j`` and
+    equilibrium's Hessian (``own``: ``D0`` is the equilibrium's insertion, not a kink's side):
+    the potential depends on ``alpha_j`` and
     the guide twist ``w_j`` only through ``alpha_j + D_j w_j`` (plus the guide's
     ``1/2 GJ_j D_j w_j^2``), so where every ``D_j > 0`` (``w_j`` a coordinate)
     ``U_{alpha_j .} = (H[w_j, .] - GJ_j D_j e_{w_j}) / D_j`` and
