@@ -436,6 +436,57 @@ def test_the_actuator_stiffness_is_the_same_on_both_kernels():
                                    atol=1e-9 * float(Ke.abs().max()))
 
 
+@pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
+def test_the_compiled_tip_partials_are_the_autograd_ones(dtype):
+    """The tip twist's partials ``P_q, P_D, P_alpha`` (compiled: a complex step of the tip pose
+    as a function of the layout, per coordinate and actuator) against one reverse pass of
+    autograd through a fresh layout and torchpvs.mechanics.tip_pose (the eager kernel's), at
+    equilibria and at coordinates off them, unloaded and on a loaded layout (coordinates on the
+    distal sections), on the suite's scenes (2-4 tubes, random robots) and next to kinks:
+    relative 1e-11 in float64, 1e-5 in float32."""
+    from torchpvs.kernel import _compiled_tip_partials
+    from torchpvs.mechanics import tip_partials
+    worst = []
+    noise = torch.Generator().manual_seed(0)
+    cases = [(scene, None) for scene in (fig3(), random_scene(1), random_scene(2),
+                                         nested_scene(3, seed=1), nested_scene(4, seed=2))]
+    cases += [(scene, D) for scene, D in _kink_scenes()[1::3]]
+    for (scene, D), force in zip(cases, [0.0, 0.3] * len(cases), strict=False):
+        rot = np.random.default_rng(1).uniform(-3, 3, (6, len(scene.tubes)))
+        kw = {} if D is None else {"insertion": torch.tensor(D, dtype=dtype).expand(6, -1)}
+        eq = tp.solve(scene, rotation=torch.tensor(rot, dtype=dtype),
+                      tip_force=torch.tensor([force, 0.0, 0.0], dtype=dtype),
+                      options=SolverOptions(dtype=dtype), **kw)
+        ctx, info = eq.context, eq.context.implicit
+        assert bool(info.loaded.any()) == (force > 0)
+        q = eq.q.detach()
+        q_off = q + 0.2 * torch.randn(q.shape, generator=noise, dtype=dtype) * info.qmask
+        for qq in (q, q_off):
+            args = (qq, ctx.tubes, ctx.insertion, ctx.rotation, info.loaded, info.tab, info.disc)
+            ref, out = tip_partials(*args), _compiled_tip_partials(*args)
+            assert all(o.dtype == dtype and o.shape == r.shape
+                       for o, r in zip(out, ref, strict=True))
+            for r, o in zip(ref, out, strict=True):
+                worst.append(float((r - o).abs().max() / r.abs().max()))
+    assert len(worst) >= 3 * 2 * len(cases)
+    assert max(worst) < (1e-11 if dtype == torch.float64 else 1e-5), max(worst)
+
+
+def test_the_control_jacobians_are_the_same_on_both_kernels():
+    """``control_jacobians`` (stiffness, tip Jacobian, tip compliance) of the same equilibria
+    solved on the eager and the compiled kernel, which take the tip partials from autograd and
+    from the complex step, the kink sides included, to 1e-9 relative."""
+    from torchpvs.jacobians import control_jacobians
+    rot = torch.tensor(np.random.default_rng(4).uniform(-3, 3, (3, 2)), dtype=DT)
+    for scene, D in [(fig3(), [0.05, 0.15]), *_kink_scenes()[::4]]:
+        eqs = both(scene, insertion=torch.tensor(D, dtype=DT).expand(3, 2), rotation=rot)
+        je, jc = (control_jacobians(e) for e in eqs)
+        for name in ("actuator_stiffness", "tip_jacobian", "tip_compliance"):
+            a, b = getattr(je, name), getattr(jc, name)
+            np.testing.assert_allclose(b.numpy(), a.numpy(), rtol=1e-9,
+                                       atol=1e-9 * float(a.abs().max()), err_msg=name)
+
+
 def test_the_compiled_new_section_step_is_the_eager_one(monkeypatch):
     """The new-section step of the one-sided forces (a section of length 1e-7 m appearing at a
     kink, solved for with the rest held): the compiled step against kernel.new_section_step,

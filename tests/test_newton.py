@@ -205,8 +205,8 @@ def test_every_per_element_computation_goes_through_the_kernel(monkeypatch):
     """The kernel seam (torchpvs.kernel): SolverOptions(kernel=name) runs every per-element
     computation of the driver through KERNELS[name] -- the cold guess, the Newton solve, the
     single steps of the order estimate, the tip poses, the new-section step of the one-sided
-    forces at a kink, the SPD solve of the rotation predictor and the actuator stiffness's
-    Hessian rows -- so a kernel registered
+    forces at a kink, the SPD solve of the rotation predictor, the actuator stiffness's
+    Hessian rows and the tip partials of the tip Jacobian -- so a kernel registered
     with the eager functions wrapped sees each of them called, and returns the eager
     kernel's results bit for bit. An unknown name is refused."""
     assert isinstance(KERNELS["newton"], tp.kernel.Kernel) and KERNELS["newton"] is EAGER
@@ -237,9 +237,11 @@ def test_every_per_element_computation_goes_through_the_kernel(monkeypatch):
     e0 = tp.solve(scene, options=tp.SolverOptions(kernel="spy"))
     tp.solve(scene, rotation=torch.tensor(scene.actuation.rotation, dtype=DT) + 0.02,
              initial=e0, options=tp.SolverOptions(kernel="spy"))
-    # the actuator stiffness's Hessian rows (jacobians), the same through the seam
-    from torchpvs.jacobians import actuator_stiffness
+    # the actuator stiffness's Hessian rows and the tip partials (jacobians), the same
+    # through the seam
+    from torchpvs.jacobians import actuator_stiffness, tip_jacobian
     assert torch.equal(actuator_stiffness(eq), actuator_stiffness(ref))
+    assert torch.equal(tip_jacobian(eq), tip_jacobian(ref))
     assert set(calls) == set(EAGER._fields), calls
     with pytest.raises(ValueError, match="options.kernel"):
         tp.SolverOptions(kernel="no-such-kernel")

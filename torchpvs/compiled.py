@@ -46,7 +46,8 @@ except ImportError:      # pragma: no cover - numba is a dependency; this is the
     numba = None         # (cached_jit then leaves the functions below plain Python)
     prange = range
 
-__all__ = ["available", "partials", "pose", "section_step", "solve", "step", "stiffness_rows"]
+__all__ = ["available", "partials", "pose", "section_step", "solve", "step", "stiffness_rows",
+           "tip_partials"]
 
 # Batches from this size run in parallel (a parallel launch costs ~10 us: a serial loop over a
 # few elements is faster).
@@ -274,6 +275,32 @@ def stiffness_rows(q: torch.Tensor, lay, tubes, tab, rotations: bool = False) ->
     # U_Dalpha without the rotation directions: d tau_alpha / dD by symmetry
     UxA = Xt[:, :, N:] if rotations else t(X)[:, :, N:]
     return t(Gq).to(q.dtype), Xt[:, :, :N].to(q.dtype), UxA.to(q.dtype)
+
+
+def tip_partials(q: torch.Tensor, lay, tubes, tab) -> tuple | None:
+    """The tip's partials at fixed ``q (B, nq)`` on the layout ``lay`` (the tube rows
+    ``tubes``): ``(P_q (B, 6, nq), P_D (B, 6, N), P_alpha (B, 6, N))``, rows the tip position
+    [m] and spatial rotation [rad] (:func:`torchpvs.mechanics.tip_partials`), zero on the
+    inactive coordinates, by a complex step per coordinate and actuator
+    (:func:`tip_partials_one`). None where the compiled kernel does not apply (a tensor that
+    requires grad, not CPU). Computed in float64 (complex128), returned in ``q``'s dtype."""
+    args = _layout_arrays(q, lay, tubes, tab)
+    if args is None:
+        return None
+    (qmask, D, L, Ls, _, _, coef, tau, psi0, start, h, present, curved, _, presc,
+     *_) = (x.astype(np.float64, copy=False) for x in args)
+    qa = _numpy(q, torch.float64)
+    B, nq = qa.shape
+    N = D.shape[1]
+    Pq = np.empty((B, 6, nq))
+    Px = np.empty((B, 6, 2 * N))
+    run = _tip_parallel if _set_threads(B) else _tip_serial
+    f64 = torch.float64
+    run(qa, qmask, D, L, Ls, coef, tau, psi0, start, h, present, curved, presc,
+        _numpy(lay.tip_tube.expand(B, N), f64), _numpy(tab.xm, f64), _numpy(tab.phi_m, f64),
+        _numpy(tab.Q_m, f64), Pq, Px)
+    t = torch.from_numpy
+    return (t(Pq).to(q.dtype), t(Px[:, :, :N]).to(q.dtype), t(Px[:, :, N:]).to(q.dtype))
 
 
 def pose(q: torch.Tensor, lay, tab, const) -> tuple | None:
@@ -1002,37 +1029,11 @@ def partials_one(q, qmask, D, L, Ls, EI, GJ, coef, tau, psi0, start, h, present,
 
 
 @_jit
-def section_moved(start, h, dstart, dh, k, Dc, D):
-    """Section ``k``'s start and length at the insertions ``Dc`` (along the cut slopes)."""
-    sk = start[k] + 0.0 * Dc[0]
-    hk = h[k] + 0.0 * Dc[0]
-    for l in range(D.shape[0]):
-        sk += dstart[k, l] * (Dc[l] - D[l])
-        hk += dh[k, l] * (Dc[l] - D[l])
-    return sk, hk
-
-
-@_jit
-def partials_core(q, Dc, dA, qmask, D, L, Ls, EI, GJ, coef, tau, psi0, start, h, present,
-                  curved, active, presc, W, xq, wq, phi, Qb, want_g, g, tau_D, tau_A):
-    """:func:`partials_one` at the insertions ``Dc`` (N,) near the layout's ``D`` and the
-    rotations moved by ``dA`` (N,), and with
-    ``want_g`` the energy's gradient in the full coordinates ``q`` into ``g`` (nq,), zero on
-    the inactive ones (the gradient of mechanics.potential without load).
-
-    The layout's fields are piecewise linear in ``D`` with the slopes this function derives
-    (``dh``, ``dstart``: the cut order; ``-1`` for the transitions ``tau``; ``dtg`` for the
-    curved length in the guide), so at ``Dc = D + i eps e_l`` (complex, the layout's sections
-    and masks unchanged) every output is its value plus ``i eps`` times its ``D_l``-derivative
-    along those slopes, and at ``dA = i eps e_l`` its ``alpha_l``-derivative: the complex step
-    that gives the stiffness's rows (:func:`stiffness_rows_one`). ``Dc = D`` and ``dA = 0``
-    (real) is :func:`partials_one`."""
+def cut_slopes(D, L, Ls, S):
+    """``(dh, dstart)`` ``(S, N)``: the slopes in ``D`` of the layout's section lengths and
+    starts (build_layout's cut order; the layout's fields are piecewise linear in ``D``)."""
     N = D.shape[0]
-    S = h.shape[0]
-    Q, n = phi.shape
-    Cn = (2 + N) * n
     rt = D.dtype
-    vt = Dc.dtype
     # d(cut)/dD of the cuts in build_layout's sorted order (a stable sort, as torch.sort's)
     cut = np.empty(2 * N, dtype=rt)
     dsrc = np.empty(2 * N, dtype=rt)
@@ -1069,6 +1070,53 @@ def partials_core(q, Dc, dA, qmask, D, L, Ls, EI, GJ, coef, tau, psi0, start, h,
         if k + 1 < S:
             dstart[k + 1, l] = dsrc[perm[k]]
             dh[k + 1, l] -= dsrc[perm[k]]
+    return dh, dstart
+
+
+@_jit
+def guide_curved(D, L, Ls, Dc, j):
+    """``(tg, tg_r, dtg)``: the length of tube ``j``'s curved part held in the guide at the
+    insertion ``Dc[j]`` (moved along its slope ``dtg`` from the layout's ``tg_r`` at ``D``)."""
+    Dm = min(D[j], L[j])
+    dmin = 1.0 if D[j] < L[j] else (0.0 if D[j] > L[j] else 0.5)
+    dtg = dmin if Dm - Ls[j] >= 0 else 0.0
+    tg_r = max(Dm - Ls[j], 0.0)
+    return tg_r + dtg * (Dc[j] - D[j]), tg_r, dtg
+
+
+@_jit
+def section_moved(start, h, dstart, dh, k, Dc, D):
+    """Section ``k``'s start and length at the insertions ``Dc`` (along the cut slopes)."""
+    sk = start[k] + 0.0 * Dc[0]
+    hk = h[k] + 0.0 * Dc[0]
+    for l in range(D.shape[0]):
+        sk += dstart[k, l] * (Dc[l] - D[l])
+        hk += dh[k, l] * (Dc[l] - D[l])
+    return sk, hk
+
+
+@_jit
+def partials_core(q, Dc, dA, qmask, D, L, Ls, EI, GJ, coef, tau, psi0, start, h, present,
+                  curved, active, presc, W, xq, wq, phi, Qb, want_g, g, tau_D, tau_A):
+    """:func:`partials_one` at the insertions ``Dc`` (N,) near the layout's ``D`` and the
+    rotations moved by ``dA`` (N,), and with
+    ``want_g`` the energy's gradient in the full coordinates ``q`` into ``g`` (nq,), zero on
+    the inactive ones (the gradient of mechanics.potential without load).
+
+    The layout's fields are piecewise linear in ``D`` with the slopes this function derives
+    (``dh``, ``dstart``: the cut order; ``-1`` for the transitions ``tau``; ``dtg`` for the
+    curved length in the guide), so at ``Dc = D + i eps e_l`` (complex, the layout's sections
+    and masks unchanged) every output is its value plus ``i eps`` times its ``D_l``-derivative
+    along those slopes, and at ``dA = i eps e_l`` its ``alpha_l``-derivative: the complex step
+    that gives the stiffness's rows (:func:`stiffness_rows_one`). ``Dc = D`` and ``dA = 0``
+    (real) is :func:`partials_one`."""
+    N = D.shape[0]
+    S = h.shape[0]
+    Q, n = phi.shape
+    Cn = (2 + N) * n
+    rt = D.dtype
+    vt = Dc.dtype
+    dh, dstart = cut_slopes(D, L, Ls, S)
     # the layout at Dc: starts, lengths and transitions moved along their slopes, each
     # computed where it is used (tau_j - (Dc_j - D_j), section_moved) to allocate nothing
     if want_g:
@@ -1079,11 +1127,7 @@ def partials_core(q, Dc, dA, qmask, D, L, Ls, EI, GJ, coef, tau, psi0, start, h,
     psi_start = np.empty(N, dtype=vt)
     for j in range(N):
         w = q[j] * qmask[j]
-        Dm = min(D[j], L[j])
-        dmin = 1.0 if D[j] < L[j] else (0.0 if D[j] > L[j] else 0.5)
-        dtg = dmin if Dm - Ls[j] >= 0 else 0.0
-        tg_r = max(Dm - Ls[j], 0.0)
-        tg = tg_r + dtg * (Dc[j] - D[j])
+        tg, tg_r, dtg = guide_curved(D, L, Ls, Dc, j)
         ugx = horner(coef, j, 0, tg)
         ugy = horner(coef, j, 1, tg)
         tau_D[j] = 0.5 * GJ[j] * w * w + 0.5 * EI[j] * (ugx * ugx + ugy * ugy) * dtg
@@ -1424,3 +1468,218 @@ def _pose_parallel(q, qm, psi0, D, tip_tube, sec, h, presc_inc, us_held, presc_l
         pose_one(q[i, b], qm[b], psi0[b], D[b], tip_tube[b], sec[b], h[b], presc_inc[b],
                  us_held[b], presc_local[b], phi, Qb, S, small, tip[i, b], R[i, b],
                  psi_tip[i, b])
+
+
+@_jit
+def exp_right_any(g, om, small, E, tmp):
+    """:func:`right_multiply_exp` for real or complex twists (the complex step of
+    :func:`tip_partials_one`): the branch on ``|omega|^2`` is taken on its real part, and both
+    branches are analytic, so the complex step through it is exact."""
+    wx, wy, wz, vx, vy, vz = om[0], om[1], om[2], om[3], om[4], om[5]
+    t2 = wx * wx + wy * wy + wz * wz
+    if t2.real < small:
+        a = 1 - t2 / 6 + t2 * t2 / 120
+        half = 0.5 - t2 / 48 + t2 * t2 / 3840
+    else:
+        t = np.sqrt(t2)
+        a = np.sin(t) / t
+        half = np.sin(0.5 * t) / t
+    b = 2 * half * half
+    if t2.real < 0.1:
+        c = (1.0 / 6 - t2 / 120 + t2 * t2 / 5040 - t2 ** 3 / 362880 + t2 ** 4 / 39916800)
+    else:
+        t = np.sqrt(t2)
+        c = (t - np.sin(t)) / (t * t * t)
+    d = 1 - b * t2
+    e = 1 - c * t2
+    cwv = c * (wx * vx + wy * vy + wz * vz)
+    E[0, 0] = d + b * wx * wx
+    E[0, 1] = b * wx * wy - a * wz
+    E[0, 2] = b * wx * wz + a * wy
+    E[1, 0] = b * wx * wy + a * wz
+    E[1, 1] = d + b * wy * wy
+    E[1, 2] = b * wy * wz - a * wx
+    E[2, 0] = b * wx * wz - a * wy
+    E[2, 1] = b * wy * wz + a * wx
+    E[2, 2] = d + b * wz * wz
+    E[0, 3] = e * vx + b * (wy * vz - wz * vy) + cwv * wx
+    E[1, 3] = e * vy + b * (wz * vx - wx * vz) + cwv * wy
+    E[2, 3] = e * vz + b * (wx * vy - wy * vx) + cwv * wz
+    for i in range(4):
+        for j in range(4):
+            acc = g[i, 0] * E[0, j]
+            for k in range(1, 3):
+                acc += g[i, k] * E[k, j]
+            if j == 3:
+                acc += g[i, 3]
+            tmp[i, j] = acc
+    g[:, :] = tmp
+
+
+@_jit
+def tip_twist_core(q, Dc, dA, qmask, D, L, Ls, coef, tau, psi0, start, h, present, curved,
+                   presc, tip_tube, xm, phi, Qb, small, tip, R):
+    """The tip pose (mechanics.tip_pose on every section, as a function of the layout) into
+    ``tip (3,)`` and ``R (3, 3)`` at the coordinates ``q (nq,)``, the insertions ``Dc (N,)``
+    near the layout's ``D`` and the rotations moved by ``dA (N,)``: real, or complex for the
+    complex step of :func:`tip_partials_one` (the layout's fields move along their slopes in
+    ``D``, :func:`cut_slopes`, with its sections and masks unchanged, as in
+    :func:`partials_core`). ``xm, phi, Qb``: the Magnus points and the basis and its integrals
+    there."""
+    N = D.shape[0]
+    S = h.shape[0]
+    G, n = phi.shape
+    m = G // 2
+    Cn = (2 + N) * n
+    vt = tip.dtype
+    dh, dstart = cut_slopes(D, L, Ls, S)
+    psi = np.empty(N, dtype=vt)          # the tube angles at the current section's start
+    ntau = np.empty(N, dtype=vt)         # -tau_j at Dc
+    Z0 = np.empty(N, dtype=vt)
+    for j in range(N):
+        tg, tg_r, _ = guide_curved(D, L, Ls, Dc, j)
+        psi[j] = (psi0[j] + dA[j] + horner_integral(coef, j, tg)
+                  - horner_integral(coef, j, tg_r) + Dc[j] * (q[j] * qmask[j]))
+        ntau[j] = (Dc[j] - D[j]) - tau[j]
+    g = np.eye(4, dtype=vt)
+    E = np.empty((4, 4), dtype=vt)
+    tmp = np.empty((4, 4), dtype=vt)
+    om = np.empty(6, dtype=vt)
+    u = np.empty((G, 2), dtype=vt)
+    k3 = 3.0 ** 0.5 / 12.0
+    for k in range(S):
+        moves = False
+        for l in range(N):
+            if dh[k, l] != 0.0:
+                moves = True
+        if h[k] == 0.0 and not moves:      # an identity step that adds no angle
+            continue
+        off = N + k * Cn
+        sk, hk = section_moved(start, h, dstart, dh, k, Dc, D)
+        for j in range(N):
+            Z0[j] = horner_integral(coef, j, sk + ntau[j])
+        for gg in range(G):
+            s_node = sk + 0.5 * (xm[gg] + 1.0) * hk
+            ux = 0.0 * hk
+            uy = 0.0 * hk
+            for p in range(n):
+                ux += q[off + p] * qmask[off + p] * phi[gg, p]
+                uy += q[off + n + p] * qmask[off + n + p] * phi[gg, p]
+            for j in range(N):       # a prescribed section's strain: its precurvature
+                held = presc[k] * present[k, j]
+                if held == 0.0:
+                    continue
+                t = s_node + ntau[j]
+                lq = 0.0 * hk
+                for p in range(n):
+                    f = off + (2 + j) * n + p
+                    lq += q[f] * qmask[f] * Qb[gg, p]
+                ps = (psi[j] + 0.5 * hk * lq
+                      + (horner_integral(coef, j, t) - Z0[j]) * curved[k, j] * presc[k])
+                usx = horner(coef, j, 0, t) * curved[k, j]
+                usy = horner(coef, j, 1, t) * curved[k, j]
+                cs = np.cos(ps)
+                sn = np.sin(ps)
+                ux += held * (cs * usx - sn * usy)
+                uy += held * (sn * usx + cs * usy)
+            u[gg, 0] = ux
+            u[gg, 1] = uy
+        hs = hk / m
+        kq = k3 * hs * hs
+        for i in range(m):
+            u1x, u1y = u[2 * i, 0], u[2 * i, 1]
+            u2x, u2y = u[2 * i + 1, 0], u[2 * i + 1, 1]
+            om[0] = 0.5 * hs * (u1x + u2x)
+            om[1] = 0.5 * hs * (u1y + u2y)
+            om[2] = kq * (u1x * u2y - u1y * u2x)
+            om[3] = kq * (u1y - u2y)
+            om[4] = -kq * (u1x - u2x)
+            om[5] = hs
+            exp_right_any(g, om, small, E, tmp)
+        for j in range(N):
+            f = off + (2 + j) * n
+            psi[j] += (hk * q[f] * qmask[f] + (horner_integral(coef, j, sk + ntau[j] + hk)
+                                               - Z0[j]) * curved[k, j] * presc[k])
+    angle = 0.0 * psi[0]
+    for j in range(N):
+        angle += psi[j] * tip_tube[j]
+    ca = np.cos(angle)
+    sa = np.sin(angle)
+    for i in range(3):
+        tip[i] = g[i, 3]
+        R[i, 0] = g[i, 0] * ca + g[i, 1] * sa
+        R[i, 1] = -g[i, 0] * sa + g[i, 1] * ca
+        R[i, 2] = g[i, 2]
+
+
+@_jit
+def tip_partials_one(q, qmask, D, L, Ls, coef, tau, psi0, start, h, present, curved, presc,
+                     tip_tube, xm, phi, Qb, Pq, Px):
+    """One element's tip partials at fixed ``q``: ``Pq (6, nq)`` per coordinate (zero on the
+    inactive ones) and ``Px (6, 2N)`` per insertion then rotation, rows the tip position [m]
+    and the spatial rotation ``vee(skew(dR R^T))`` [rad], by a complex step of
+    :func:`tip_twist_core` per direction (exact to rounding: no difference is taken)."""
+    N = D.shape[0]
+    nq = q.shape[0]
+    eps = 1e-20
+    qc = np.empty(nq, dtype=np.complex128)
+    Dc = np.empty(N, dtype=np.complex128)
+    dA = np.zeros(N, dtype=np.complex128)
+    tip = np.empty(3, dtype=np.complex128)
+    R = np.empty((3, 3), dtype=np.complex128)
+    for c in range(nq):
+        qc[c] = q[c]
+    for j in range(N):
+        Dc[j] = D[j]
+    for d in range(nq + 2 * N):
+        if d < nq:
+            if qmask[d] == 0.0:
+                Pq[:, d] = 0.0
+                continue
+            qc[d] = q[d] + 1j * eps
+        elif d < nq + N:
+            Dc[d - nq] = D[d - nq] + 1j * eps
+        else:
+            dA[d - nq - N] = 1j * eps
+        tip_twist_core(qc, Dc, dA, qmask, D, L, Ls, coef, tau, psi0, start, h, present, curved,
+                       presc, tip_tube, xm, phi, Qb, 1e-6, tip, R)
+        if d < nq:
+            col = Pq[:, d]
+            qc[d] = q[d]
+        elif d < nq + N:
+            col = Px[:, d - nq]
+            Dc[d - nq] = D[d - nq]
+        else:
+            col = Px[:, d - nq]
+            dA[d - nq - N] = 0.0
+        for i in range(3):
+            col[i] = tip[i].imag / eps
+        # spatial rotation: vee of the skew part of dR R^T
+        W = np.empty((3, 3))
+        for i in range(3):
+            for k in range(3):
+                acc = 0.0
+                for l in range(3):
+                    acc += R[i, l].imag * R[k, l].real
+                W[i, k] = acc / eps
+        col[3] = 0.5 * (W[2, 1] - W[1, 2])
+        col[4] = 0.5 * (W[0, 2] - W[2, 0])
+        col[5] = 0.5 * (W[1, 0] - W[0, 1])
+
+
+@cached_jit(nogil=True)
+def _tip_serial(q, qmask, D, L, Ls, coef, tau, psi0, start, h, present, curved, presc,
+                tip_tube, xm, phi, Qb, Pq, Px):
+    for b in range(q.shape[0]):
+        tip_partials_one(q[b], qmask[b], D[b], L[b], Ls[b], coef[b], tau[b], psi0[b],
+                         start[b], h[b], present[b], curved[b], presc[b], tip_tube[b], xm,
+                         phi, Qb, Pq[b], Px[b])
+
+
+@cached_jit(nogil=True, parallel=True)
+def _tip_parallel(q, qmask, D, L, Ls, coef, tau, psi0, start, h, present, curved, presc,
+                  tip_tube, xm, phi, Qb, Pq, Px):
+    for b in prange(q.shape[0]):
+        tip_partials_one(q[b], qmask[b], D[b], L[b], Ls[b], coef[b], tau[b], psi0[b],
+                         start[b], h[b], present[b], curved[b], presc[b], tip_tube[b], xm,
+                         phi, Qb, Pq[b], Px[b])

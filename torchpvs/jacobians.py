@@ -32,7 +32,7 @@ import torch
 from .forces import KINK_DELTA, closed_form_partials, kink_mask
 from .implicit import adjoint_factor, differentiable_outputs
 from .kernel import EAGER, KERNELS
-from .mechanics import potential, skew_vee, tip_pose
+from .mechanics import potential, skew_vee, tip_twist
 from .sections import TubeTensors, build_layout, tube_rows
 
 __all__ = ["ControlJacobians", "actuator_stiffness", "control_jacobians", "tip_jacobian"]
@@ -231,27 +231,22 @@ def _schur(eq, rows: torch.Tensor, tip: bool = False, D=None):
 
 def _tip_partials(eq, rows: torch.Tensor, D=None):
     """``(P_q (B, 6, nq), P_x (B, 6, 2N))``: the tip twist (position [m], spatial rotation
-    [rad]) per coordinate and per actuator at fixed ``q``, zero on the inactive coordinates —
-    one reverse pass over the batch repeated 6 times (:func:`_replicated`)."""
-    B = len(rows)
-    q, info, (D, A, F, M), tubes = _replicated(eq, 6, rows, D)
-    q, D, A = (t.requires_grad_(True) for t in (q, D, A))
-    pick = torch.eye(6, dtype=q.dtype, device=q.device).repeat(B, 1)        # (B 6, 6)
-    with torch.enable_grad():
-        lay = build_layout(tubes, D, A, F, M, info.loaded, info.disc)
-        Pq, PD, PA = torch.autograd.grad((_tip_twist(q, lay, info) * pick).sum(), (q, D, A))
+    [rad]) per coordinate and per actuator at fixed ``q``, zero on the inactive coordinates,
+    from the equilibrium's kernel (:attr:`~torchpvs.kernel.Kernel.tip_partials`: compiled, a
+    complex step per direction; eager, one reverse pass over the batch repeated 6 times), at
+    the insertions ``D (B, N)`` instead of the equilibrium's where given (a kink's side)."""
+    ctx = eq.context
+    info = ctx.implicit
+    own = D is None
+    D0 = ctx.insertion.detach()[rows] if own else D
+    Pq, PD, PA = KERNELS[ctx.options.kernel].tip_partials(
+        eq.q.detach()[rows], tube_rows(ctx.tubes, rows), D0, ctx.rotation.detach()[rows],
+        info.loaded[rows], info.tab, info.disc, _own_layout(eq, rows) if own else None)
     return _tip_rows(eq, rows, Pq, PD, PA)
 
 
-def _tip_twist(q, lay, info) -> torch.Tensor:
-    """``(..., 6)`` the tip position and the rotation ``vee(R R0^T)`` (``R0`` the detached
-    rotation): its derivatives are the tip twist's."""
-    p, R, _ = tip_pose(q, lay, info.tab)
-    return torch.cat([p, skew_vee(R @ R.detach().transpose(-1, -2))], -1)
-
-
 def _tip_rows(eq, rows, Pq, PD, PA):
-    """``(P_q (B, 6, nq), P_x (B, 6, 2N))`` from the replicated reverse pass's gradients."""
+    """``(P_q (B, 6, nq), P_x (B, 6, 2N))`` from the partials in ``q``, ``D`` and ``alpha``."""
     B = len(rows)
     qmask = eq.context.implicit.qmask[rows]
     return (Pq.reshape(B, 6, -1) * qmask[:, None],
@@ -310,6 +305,17 @@ def _implicit_rows(eq, rows: torch.Tensor, *, stiffness: bool, tip: bool) -> tor
     return torch.cat([GD, GA], -1).reshape(B, m, n)
 
 
+def _own_layout(eq, rows):
+    """The layout of batch ``rows`` at the equilibrium's own insertions where the solve's plan
+    still holds it (unloaded, :meth:`~torchpvs.plan.Plan.reused_layout`), else None."""
+    ctx = eq.context
+    if ctx.plan is None:
+        return None
+    full = ctx.plan.reused_layout(ctx.tubes, ctx.insertion.detach(), ctx.rotation.detach(),
+                                  ctx.implicit.loaded, ctx.implicit.disc)
+    return None if full is None else type(full)._make(t[rows] for t in full)
+
+
 def _kernel_rows(eq, rows, D0, own: bool, rotations: bool):
     """The equilibrium's kernel's :attr:`~torchpvs.kernel.Kernel.actuation_rows` of batch
     ``rows`` at insertions ``D0`` (``own``: the equilibrium's, whose layout the solve's plan
@@ -317,14 +323,9 @@ def _kernel_rows(eq, rows, D0, own: bool, rotations: bool):
     ctx = eq.context
     info = ctx.implicit
     A = ctx.rotation.detach()
-    lay = None
-    if own and ctx.plan is not None:
-        full = ctx.plan.reused_layout(ctx.tubes, ctx.insertion.detach(), A, info.loaded,
-                                      info.disc)
-        lay = None if full is None else type(full)._make(t[rows] for t in full)
     return KERNELS[ctx.options.kernel].actuation_rows(
         eq.q.detach()[rows], tube_rows(ctx.tubes, rows), D0, A[rows], info.loaded[rows],
-        info.tab, info.disc, rotations, lay)
+        info.tab, info.disc, rotations, _own_layout(eq, rows) if own else None)
 
 
 def _rotation_rows_from_hessian(eq, rows, D0, tip: bool = False, own: bool = False):
@@ -367,7 +368,7 @@ def _rotation_rows_from_hessian(eq, rows, D0, tip: bool = False, own: bool = Fal
             # the closed-form dU/dD (forces.closed_form_partials) differentiated once, instead
             # of a double backward through the energy
             tau_D = closed_form_partials(q, lay, tubes, info.tab, info.disc)[0]
-        out = torch.cat([tau_D, _tip_twist(q, lay, info)], -1) if tip else tau_D
+        out = torch.cat([tau_D, tip_twist(q, lay, info.tab)], -1) if tip else tau_D
         Gq, GD, GA = (g.reshape(B, m, -1) for g in
                       torch.autograd.grad((out * pick).sum(), (q, D, A)))
     partials = (_tip_rows(eq, rows, *(g[:, N:] for g in (Gq, GD, GA))) if tip else None)

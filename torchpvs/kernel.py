@@ -5,12 +5,12 @@ The driver (:mod:`torchpvs.solver` with :mod:`torchpvs.order_control` and
 plan), and assembles the outputs; every computation it makes *per batch element* goes through
 one :class:`Kernel`: the cold-start guess, the Newton solve, the single Newton steps of the
 order estimate and the kink re-solves, the new-section step of the one-sided forces, the tip
-pose, the closed-form partials of the actuation forces, and the SPD solves of the rotation
-predictor. A kernel is a :class:`Kernel` of plain functions registered in :data:`KERNELS`
-under a name (``SolverOptions(kernel=name)``), in the
-spirit of torchdiffeq's ``SOLVERS``; adding one (a compiled CPU kernel, a fused GPU kernel)
-touches no driver code, and a kernel that implements only some functions reuses the eager
-ones for the rest (``EAGER._replace(solve=my_solve)``).
+pose, the closed-form partials of the actuation forces, the rows of the actuator stiffness and
+the tip's partials of the control Jacobians, and the SPD solves of the rotation predictor. A
+kernel is a :class:`Kernel` of plain functions registered in :data:`KERNELS` under a name
+(``SolverOptions(kernel=name)``), in the spirit of torchdiffeq's ``SOLVERS``; adding one (a
+compiled CPU kernel, a fused GPU kernel) touches no driver code, and a kernel that implements
+only some functions reuses the eager ones for the rest (``EAGER._replace(solve=my_solve)``).
 
 :data:`EAGER` (``"newton"``) is the reference: batched eager torch, on any device
 (:mod:`torchpvs.newton` for the damped iteration, :mod:`torchpvs.batch_linalg` for the
@@ -34,6 +34,7 @@ from .mechanics import (
     section_grad_block,
     start_angles,
     sum_dim,
+    tip_partials,
     tip_pose,
 )
 from .newton import NewtonResult, Problem, derivatives, newton, scaled_residual
@@ -77,6 +78,10 @@ class Kernel(NamedTuple):
             unloaded energy's Hessian at fixed ``q`` and the layout's coordinate mask at ``D``
             (:func:`torchpvs.forces.actuation_rows`), for the actuator stiffness
             (:func:`torchpvs.jacobians.actuator_stiffness`).
+        tip_partials: ``tip_partials(q, tubes, D, alpha, loaded, tab, disc, layout) -> (P_q
+            (B, 6, nq), P_D (B, 6, N), P_alpha (B, 6, N))``: the tip twist's partials at fixed
+            ``q`` (position [m], spatial rotation [rad]; :func:`torchpvs.mechanics.tip_partials`),
+            for the closed-form tip Jacobian and compliance (:mod:`torchpvs.jacobians`).
     """
 
     guess: Callable[..., torch.Tensor]
@@ -87,6 +92,7 @@ class Kernel(NamedTuple):
     spd_solve: Callable[[torch.Tensor, torch.Tensor], tuple[torch.Tensor, torch.Tensor]]
     partials: Callable[..., tuple[torch.Tensor, torch.Tensor]]
     actuation_rows: Callable[..., tuple]
+    tip_partials: Callable[..., tuple]
 
 
 def newton_step(q: torch.Tensor, prob: Problem) -> tuple[torch.Tensor, torch.Tensor]:
@@ -197,7 +203,8 @@ def default_guess(lay: Layout, maps: Maps, tab: Tables, disc: Discretization,
 #: The reference kernel: batched eager torch on any device.
 EAGER = Kernel(guess=default_guess, solve=newton, step=newton_step,
                section_step=new_section_step, pose=tip_pose, spd_solve=spd_solve,
-               partials=closed_form_partials, actuation_rows=actuation_rows)
+               partials=closed_form_partials, actuation_rows=actuation_rows,
+               tip_partials=tip_partials)
 
 
 def _compiled_solve(q, prob, L_char, **kwargs):
@@ -220,20 +227,32 @@ def _compiled_partials(q, lay, tubes, tab, disc, constants=None):
     return closed_form_partials(q, lay, tubes, tab, disc, constants) if out is None else out
 
 
+def _on_layout(compiled_fn, q, tubes, D, alpha, loaded, disc, layout, *args):
+    """``(compiled_fn(q, lay, tubes, *args), lay)`` on the layout at ``D`` (``layout`` where
+    the caller has it, else built without a graph); ``(None, None)`` where the compiled kernel
+    cannot run (not built, not a CPU tensor) or does not apply."""
+    if not (compiled.available() and q.device.type == "cpu"):
+        return None, None
+    with torch.no_grad():
+        lay = layout
+        if lay is None:
+            zero = torch.zeros(D.shape[0], 3, dtype=q.dtype, device=q.device)
+            lay = build_layout(tubes, D.detach(), alpha.detach(), zero, zero, loaded, disc)
+        return compiled_fn(q.detach(), lay, tubes.map(torch.Tensor.detach), *args), lay
+
+
 def _compiled_actuation_rows(q, tubes, D, alpha, loaded, tab, disc, rotations=False,
                              layout=None):
-    if compiled.available() and q.device.type == "cpu":
-        B, N = D.shape
-        with torch.no_grad():
-            lay = layout
-            if lay is None:
-                zero = torch.zeros(B, 3, dtype=q.dtype, device=q.device)
-                lay = build_layout(tubes, D.detach(), alpha.detach(), zero, zero, loaded, disc)
-            out = compiled.stiffness_rows(q.detach(), lay, tubes.map(torch.Tensor.detach), tab,
-                                          rotations)
-        if out is not None:
-            return (*out, lay.qmask)
+    out, lay = _on_layout(compiled.stiffness_rows, q, tubes, D, alpha, loaded, disc, layout,
+                          tab, rotations)
+    if out is not None:
+        return (*out, lay.qmask)
     return actuation_rows(q, tubes, D, alpha, loaded, tab, disc, rotations)
+
+
+def _compiled_tip_partials(q, tubes, D, alpha, loaded, tab, disc, layout=None):
+    out, _ = _on_layout(compiled.tip_partials, q, tubes, D, alpha, loaded, disc, layout, tab)
+    return tip_partials(q, tubes, D, alpha, loaded, tab, disc) if out is None else out
 
 
 def _compiled_pose(q, lay, tab, constants):
@@ -242,13 +261,15 @@ def _compiled_pose(q, lay, tab, constants):
 
 
 #: The compiled CPU kernel (:mod:`torchpvs.compiled`, numba): the Newton solve and step, the
-#: new-section step, the tip pose, the closed-form force partials and the stiffness's actuator
-#: rows (a complex step of the partials) per element; the eager
+#: new-section step, the tip pose, the closed-form force partials, the stiffness's actuator
+#: rows (a complex step of the partials) and the tip partials (a complex step of the pose) per
+#: element; the eager
 #: kernel wherever it does not apply (GPU tensors; a tip moment for the solve and step, a tip
 #: load for the new-section step; partials that must carry a graph).
 COMPILED = EAGER._replace(solve=_compiled_solve, step=_compiled_step,
                           section_step=_compiled_section_step, pose=_compiled_pose,
-                          partials=_compiled_partials, actuation_rows=_compiled_actuation_rows)
+                          partials=_compiled_partials, actuation_rows=_compiled_actuation_rows,
+                          tip_partials=_compiled_tip_partials)
 
 #: Kernels by name (``SolverOptions.kernel``).
 KERNELS: dict[str, Kernel] = {"newton": EAGER, "compiled": COMPILED}

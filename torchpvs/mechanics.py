@@ -21,15 +21,16 @@ from typing import TYPE_CHECKING, NamedTuple
 import torch
 
 from .lie import exp_se3, rot_z
+from .sections import build_layout, tube_rows
 
 if TYPE_CHECKING:
-    from .sections import Layout, Tables
+    from .sections import Discretization, Layout, Tables
 
 __all__ = ["Maps", "NodeConstants", "NodeFields", "PoseConstants", "angle_offsets",
            "compact_hessian", "compact_q", "elastic_energy", "expand_hessian", "expand_q",
            "magnus_twists", "node_constants", "node_fields", "poly", "pose_constants",
            "pose_node_constants", "potential", "section_start_poses", "split_q", "start_angles",
-           "sum_dim", "tip_pose"]
+           "sum_dim", "tip_partials", "tip_pose", "tip_twist"]
 
 
 def sum_dim(x: torch.Tensor, dim: int) -> torch.Tensor:
@@ -365,6 +366,38 @@ def tip_pose(q: torch.Tensor, lay: Layout, tab: Tables, const: PoseConstants | N
     angle = sum_dim(psi_tip * lay.tip_tube, -1)
     R = g[..., :3, :3] @ rot_z(angle)
     return g[..., :3, 3], R, psi_tip
+
+
+def tip_twist(q: torch.Tensor, lay: Layout, tab: Tables) -> torch.Tensor:
+    """``(..., 6)`` the tip position and the rotation ``vee(skew(R R0^T))`` (``R0`` the
+    detached rotation): its first derivatives are the tip twist's (position [m], spatial
+    rotation [rad])."""
+    p, R, _ = tip_pose(q, lay, tab)
+    return torch.cat([p, skew_vee(R @ R.detach().transpose(-1, -2))], -1)
+
+
+def tip_partials(q: torch.Tensor, tubes, D: torch.Tensor, alpha: torch.Tensor,
+                 loaded: torch.Tensor, tab: Tables, disc: Discretization,
+                 layout: Layout | None = None):
+    """The tip twist's partials at fixed ``q (B, nq)``: ``(P_q (B, 6, nq), P_D (B, 6, N),
+    P_alpha (B, 6, N))``, rows the tip position [m] and spatial rotation [rad] (a kernel's
+    :attr:`~torchpvs.kernel.Kernel.tip_partials`, for the closed-form tip Jacobian and
+    compliance of :mod:`torchpvs.jacobians`). ONE reverse pass through a fresh layout and
+    :func:`tip_pose` over the batch repeated 6 times (replica ``r`` of an element
+    back-propagates its row ``r``). ``tubes`` broadcastable to ``(B, N)``; ``loaded (B,)`` the
+    layout's load flags; ``layout``: unused here (the pass needs its own, built from inputs
+    that require grad)."""
+    B = q.shape[0]
+    idx = torch.arange(B, device=q.device).repeat_interleave(6)
+    tb = tube_rows(tubes, idx)
+    qr, Dr, Ar = (t.detach()[idx].requires_grad_(True) for t in (q, D, alpha))
+    zero = torch.zeros(B * 6, 3, dtype=q.dtype, device=q.device)
+    pick = torch.eye(6, dtype=q.dtype, device=q.device).repeat(B, 1)        # (B 6, 6)
+    with torch.enable_grad():
+        lay = build_layout(tb, Dr, Ar, zero, zero, loaded[idx], disc)
+        Pq, PD, PA = (g.reshape(B, 6, -1) for g in torch.autograd.grad(
+            (tip_twist(qr, lay, tab) * pick).sum(), (qr, Dr, Ar)))
+    return Pq, PD, PA
 
 
 def skew_vee(A: torch.Tensor) -> torch.Tensor:
