@@ -208,7 +208,8 @@ def _schur(eq, rows: torch.Tensor, tip: bool = False, D=None):
                                                                    own=D is None)
     elif not ctx.implicit.with_load:
         # every row from the kernel (compiled: a complex step per actuator, no graph)
-        Uxq, UxD, UxA, lay_mask = _kernel_rows(eq, rows, D0, D is None, True)
+        lay = _layout_at(eq, rows, D0, D is None)
+        Uxq, UxD, UxA, lay_mask = _kernel_rows(eq, rows, D0, lay, True)
         Uxx = torch.cat([UxD, UxA], -1)
     else:
         q, info, (D, A, F, M), tubes = _replicated(eq, m, rows, D)
@@ -229,19 +230,22 @@ def _schur(eq, rows: torch.Tensor, tip: bool = False, D=None):
     return 0.5 * (K + K.transpose(1, 2)), Z, partials, (None if D is None else lay_mask)
 
 
-def _tip_partials(eq, rows: torch.Tensor, D=None):
+def _tip_partials(eq, rows: torch.Tensor, D=None, layout=None):
     """``(P_q (B, 6, nq), P_x (B, 6, 2N))``: the tip twist (position [m], spatial rotation
     [rad]) per coordinate and per actuator at fixed ``q``, zero on the inactive coordinates,
     from the equilibrium's kernel (:attr:`~torchpvs.kernel.Kernel.tip_partials`: compiled, a
     complex step per direction; eager, one reverse pass over the batch repeated 6 times), at
-    the insertions ``D (B, N)`` instead of the equilibrium's where given (a kink's side)."""
+    the insertions ``D (B, N)`` instead of the equilibrium's where given (a kink's side);
+    ``layout``: the layout there where the caller has it (:func:`_layout_at`)."""
     ctx = eq.context
     info = ctx.implicit
     own = D is None
     D0 = ctx.insertion.detach()[rows] if own else D
+    if layout is None and own:
+        layout = _own_layout(eq, rows)
     Pq, PD, PA = KERNELS[ctx.options.kernel].tip_partials(
         eq.q.detach()[rows], tube_rows(ctx.tubes, rows), D0, ctx.rotation.detach()[rows],
-        info.loaded[rows], info.tab, info.disc, _own_layout(eq, rows) if own else None)
+        info.loaded[rows], info.tab, info.disc, layout)
     return _tip_rows(eq, rows, Pq, PD, PA)
 
 
@@ -316,16 +320,33 @@ def _own_layout(eq, rows):
     return None if full is None else type(full)._make(t[rows] for t in full)
 
 
-def _kernel_rows(eq, rows, D0, own: bool, rotations: bool):
+def _layout_at(eq, rows, D0, own: bool):
+    """The unloaded layout of batch ``rows`` at insertions ``D0`` (``own``: the
+    equilibrium's), for the kernel's actuator rows and tip partials to share: the plan's where
+    it holds it, else built once without a graph. None on the eager kernel, whose reverse
+    passes build their own from inputs that require grad."""
+    ctx = eq.context
+    if KERNELS[ctx.options.kernel] is EAGER:
+        return None
+    info = ctx.implicit
+    A, loaded, tubes = ctx.rotation.detach()[rows], info.loaded[rows], tube_rows(ctx.tubes, rows)
+    lay = _own_layout(eq, rows) if own else (
+        None if ctx.plan is None else ctx.plan.reused_layout(tubes, D0, A, loaded, info.disc))
+    if lay is None:
+        with torch.no_grad():
+            zero = torch.zeros(len(rows), 3, dtype=D0.dtype, device=D0.device)
+            lay = build_layout(tubes, D0, A, zero, zero, loaded, info.disc)
+    return lay
+
+
+def _kernel_rows(eq, rows, D0, layout, rotations: bool):
     """The equilibrium's kernel's :attr:`~torchpvs.kernel.Kernel.actuation_rows` of batch
-    ``rows`` at insertions ``D0`` (``own``: the equilibrium's, whose layout the solve's plan
-    may still hold), unloaded."""
+    ``rows`` at insertions ``D0`` on their ``layout`` (:func:`_layout_at`), unloaded."""
     ctx = eq.context
     info = ctx.implicit
-    A = ctx.rotation.detach()
     return KERNELS[ctx.options.kernel].actuation_rows(
-        eq.q.detach()[rows], tube_rows(ctx.tubes, rows), D0, A[rows], info.loaded[rows],
-        info.tab, info.disc, rotations, _own_layout(eq, rows) if own else None)
+        eq.q.detach()[rows], tube_rows(ctx.tubes, rows), D0, ctx.rotation.detach()[rows],
+        info.loaded[rows], info.tab, info.disc, rotations, layout)
 
 
 def _rotation_rows_from_hessian(eq, rows, D0, tip: bool = False, own: bool = False):
@@ -352,8 +373,9 @@ def _rotation_rows_from_hessian(eq, rows, D0, tip: bool = False, own: bool = Fal
         # the kernel's rows (compiled: a complex step per insertion, no graph); the tip
         # partials then by their own reverse pass (6 rows), which is cheaper than one pass
         # through both graphs only when the rows' graph is not needed
-        UDq, UDD, UDA, lay_mask = _kernel_rows(eq, rows, D0, own, False)
-        partials = _tip_partials(eq, rows, None if own else D0) if tip else None
+        lay = _layout_at(eq, rows, D0, own)
+        UDq, UDD, UDA, lay_mask = _kernel_rows(eq, rows, D0, lay, False)
+        partials = _tip_partials(eq, rows, None if own else D0, lay) if tip else None
         return (*_with_rotation_rows(eq, rows, D0, UDq, UDD, UDA), partials, lay_mask)
     m = N + 6 * tip
     q, info, (D, A, F, M), tubes = _replicated(eq, m, rows, D0)
