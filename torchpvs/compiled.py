@@ -1616,9 +1616,10 @@ def tip_twist_core(q, Dc, dA, qmask, D, L, Ls, coef, tau, psi0, start, h, presen
 def tip_partials_one(q, qmask, D, L, Ls, coef, tau, psi0, start, h, present, curved, presc,
                      tip_tube, xm, phi, Qb, Pq, Px):
     """One element's tip partials at fixed ``q``: ``Pq (6, nq)`` per coordinate (zero on the
-    inactive ones) and ``Px (6, 2N)`` per insertion then rotation, rows the tip position [m]
-    and the spatial rotation ``vee(skew(dR R^T))`` [rad], by a complex step of
-    :func:`tip_twist_core` per direction (exact to rounding: no difference is taken)."""
+    inactive ones; through the Magnus chain, :func:`tip_partials_q_one`) and ``Px (6, 2N)`` per
+    insertion then rotation, by a complex step of :func:`tip_twist_core` per actuator (exact to
+    rounding: no difference is taken); rows the tip position [m] and the spatial rotation
+    ``vee(skew(dR R^T))`` [rad]."""
     N = D.shape[0]
     nq = q.shape[0]
     eps = 1e-20
@@ -1631,26 +1632,19 @@ def tip_partials_one(q, qmask, D, L, Ls, coef, tau, psi0, start, h, present, cur
         qc[c] = q[c]
     for j in range(N):
         Dc[j] = D[j]
-    for d in range(nq + 2 * N):
-        if d < nq:
-            if qmask[d] == 0.0:
-                Pq[:, d] = 0.0
-                continue
-            qc[d] = q[d] + 1j * eps
-        elif d < nq + N:
+    tip_partials_q_one(q, qmask, D, coef, tau, psi0, start, h, present, curved, presc, tip_tube,
+                       xm, phi, Qb, Pq)
+    for d in range(nq, nq + 2 * N):
+        if d < nq + N:
             Dc[d - nq] = D[d - nq] + 1j * eps
         else:
             dA[d - nq - N] = 1j * eps
         tip_twist_core(qc, Dc, dA, qmask, D, L, Ls, coef, tau, psi0, start, h, present, curved,
                        presc, tip_tube, xm, phi, Qb, 1e-6, tip, R)
-        if d < nq:
-            col = Pq[:, d]
-            qc[d] = q[d]
-        elif d < nq + N:
-            col = Px[:, d - nq]
+        col = Px[:, d - nq]
+        if d < nq + N:
             Dc[d - nq] = D[d - nq]
         else:
-            col = Px[:, d - nq]
             dA[d - nq - N] = 0.0
         for i in range(3):
             col[i] = tip[i].imag / eps
@@ -1683,3 +1677,186 @@ def _tip_parallel(q, qmask, D, L, Ls, coef, tau, psi0, start, h, present, curved
         tip_partials_one(q[b], qmask[b], D[b], L[b], Ls[b], coef[b], tau[b], psi0[b],
                          start[b], h[b], present[b], curved[b], presc[b], tip_tube[b], xm,
                          phi, Qb, Pq[b], Px[b])
+
+
+@_jit
+def exp_derivatives(om, small, E, dE):
+    """``E = exp(om)`` (4 x 4, real ``om (6,)``) and ``dE[a] = dE/dom_a`` ``(6, 4, 4)``, by a
+    complex step of :func:`exp_right_any` per twist component (exact to rounding)."""
+    eps = 1e-20
+    omc = np.empty(6, dtype=np.complex128)
+    g = np.empty((4, 4), dtype=np.complex128)
+    Ec = np.empty((4, 4), dtype=np.complex128)
+    tmp = np.empty((4, 4), dtype=np.complex128)
+    for a in range(6):
+        for b in range(6):
+            omc[b] = om[b]
+        omc[a] += 1j * eps
+        g[:, :] = 0.0
+        for i in range(4):
+            g[i, i] = 1.0
+        exp_right_any(g, omc, small, Ec, tmp)
+        for i in range(4):
+            for j in range(4):
+                dE[a, i, j] = g[i, j].imag / eps
+                if a == 0:
+                    E[i, j] = g[i, j].real
+
+
+@_jit
+def tip_partials_q_one(q, qmask, D, coef, tau, psi0, start, h, present, curved, presc,
+                       tip_tube, xm, phi, Qb, Pq):
+    """One element's ``Pq (6, nq)``, the tip twist per coordinate at fixed actuation (zero on
+    the inactive coordinates), through the Magnus chain ``P = E_1 ... E_K``: each step's twist
+    ``Om_k`` and its derivative in ``q`` (bilinear in the bending at the step's two nodes,
+    which is linear in the section's coefficients plus ``Rz(psi_j) u*_j`` of a held tube),
+    ``dp/dOm_ka = R_{k-1} (dE_k/dOm_ka r_k)`` (``r_k`` the tip in frame ``k``) and the spatial
+    rotation ``R_{k-1} vee(dR_k R_k^T)``, plus the tip tube's angle about the last frame's
+    ``z``. The layout's fields are real here (no insertion or rotation moves): the same
+    nodes and sections as :func:`tip_twist_core`."""
+    N = D.shape[0]
+    S = h.shape[0]
+    G, n = phi.shape
+    m = G // 2
+    Cn = (2 + N) * n
+    nq = q.shape[0]
+    Sp = 0
+    for k in range(S):
+        if h[k] != 0.0:
+            Sp += 1
+    K = Sp * m
+    psi = np.empty(N)
+    dpsi = np.zeros((N, nq))               # the angles' derivatives at the section's start
+    for j in range(N):
+        psi[j] = psi0[j] + D[j] * q[j] * qmask[j]
+        dpsi[j, j] = D[j] * qmask[j]
+    Om = np.empty((K, 6))
+    dOm = np.zeros((K, 6, nq))
+    u = np.empty((G, 2))
+    du = np.zeros((G, 2, nq))
+    dps = np.empty(nq)
+    Z0 = np.empty(N)
+    k3 = 3.0 ** 0.5 / 12.0
+    ks = 0
+    for k in range(S):
+        hk = h[k]
+        if hk == 0.0:           # an identity step that adds no angle
+            continue
+        off = N + k * Cn
+        sk = start[k]
+        for j in range(N):
+            Z0[j] = horner_integral(coef, j, sk - tau[j])
+        du[:, :, :] = 0.0
+        for gg in range(G):
+            s_node = sk + 0.5 * (xm[gg] + 1.0) * hk
+            ux = 0.0
+            uy = 0.0
+            for p in range(n):
+                ux += q[off + p] * qmask[off + p] * phi[gg, p]
+                uy += q[off + n + p] * qmask[off + n + p] * phi[gg, p]
+                du[gg, 0, off + p] += qmask[off + p] * phi[gg, p]
+                du[gg, 1, off + n + p] += qmask[off + n + p] * phi[gg, p]
+            for j in range(N):
+                held = presc[k] * present[k, j]
+                if held == 0.0:
+                    continue
+                t = s_node - tau[j]
+                for c in range(nq):
+                    dps[c] = dpsi[j, c]
+                lq = 0.0
+                for p in range(n):
+                    f = off + (2 + j) * n + p
+                    lq += q[f] * qmask[f] * Qb[gg, p]
+                    dps[f] += 0.5 * hk * Qb[gg, p] * qmask[f]
+                ps = (psi[j] + 0.5 * hk * lq
+                      + (horner_integral(coef, j, t) - Z0[j]) * curved[k, j] * presc[k])
+                usx = horner(coef, j, 0, t) * curved[k, j]
+                usy = horner(coef, j, 1, t) * curved[k, j]
+                cs = math.cos(ps)
+                sn = math.sin(ps)
+                rx = held * (cs * usx - sn * usy)
+                ry = held * (sn * usx + cs * usy)
+                ux += rx
+                uy += ry
+                for c in range(nq):
+                    du[gg, 0, c] -= ry * dps[c]
+                    du[gg, 1, c] += rx * dps[c]
+            u[gg, 0] = ux
+            u[gg, 1] = uy
+        hs = hk / m
+        kq = k3 * hs * hs
+        for i in range(m):
+            u1x, u1y = u[2 * i, 0], u[2 * i, 1]
+            u2x, u2y = u[2 * i + 1, 0], u[2 * i + 1, 1]
+            Om[ks, 0] = 0.5 * hs * (u1x + u2x)
+            Om[ks, 1] = 0.5 * hs * (u1y + u2y)
+            Om[ks, 2] = kq * (u1x * u2y - u1y * u2x)
+            Om[ks, 3] = kq * (u1y - u2y)
+            Om[ks, 4] = -kq * (u1x - u2x)
+            Om[ks, 5] = hs
+            for c in range(nq):
+                d1x, d1y = du[2 * i, 0, c], du[2 * i, 1, c]
+                d2x, d2y = du[2 * i + 1, 0, c], du[2 * i + 1, 1, c]
+                dOm[ks, 0, c] = 0.5 * hs * (d1x + d2x)
+                dOm[ks, 1, c] = 0.5 * hs * (d1y + d2y)
+                dOm[ks, 2, c] = kq * (d1x * u2y + u1x * d2y - d1y * u2x - u1y * d2x)
+                dOm[ks, 3, c] = kq * (d1y - d2y)
+                dOm[ks, 4, c] = -kq * (d1x - d2x)
+            ks += 1
+        for j in range(N):
+            f = off + (2 + j) * n
+            psi[j] += (hk * q[f] * qmask[f] + (horner_integral(coef, j, sk - tau[j] + hk)
+                                               - Z0[j]) * curved[k, j] * presc[k])
+            dpsi[j, f] += hk * qmask[f]
+    # the chain: frames before each step, the exponentials and their derivatives
+    Pprev = np.empty((K, 4, 4))
+    E = np.empty((K, 4, 4))
+    dE = np.empty((K, 6, 4, 4))
+    P = np.eye(4)
+    for k in range(K):
+        Pprev[k] = P
+        exp_derivatives(Om[k], 1e-6, E[k], dE[k])
+        mat4(Pprev[k], E[k], P)
+    Pq[:, :] = 0.0
+    Pk = np.empty((4, 4))
+    r = np.empty(4)
+    z = np.empty(6)
+    for k in range(K):
+        mat4(Pprev[k], E[k], Pk)
+        for i in range(3):       # the tip in frame k
+            acc = 0.0
+            for l in range(3):
+                acc += Pk[l, i] * (P[l, 3] - Pk[l, 3])
+            r[i] = acc
+        r[3] = 1.0
+        for a in range(6):
+            y0 = 0.0
+            y1 = 0.0
+            y2 = 0.0
+            o0 = 0.0
+            o1 = 0.0
+            o2 = 0.0
+            for l in range(4):
+                y0 += dE[k, a, 0, l] * r[l]
+                y1 += dE[k, a, 1, l] * r[l]
+                y2 += dE[k, a, 2, l] * r[l]
+            for l in range(3):       # vee(dR R^T), R the step's rotation
+                o0 += 0.5 * (dE[k, a, 2, l] * E[k, 1, l] - dE[k, a, 1, l] * E[k, 2, l])
+                o1 += 0.5 * (dE[k, a, 0, l] * E[k, 2, l] - dE[k, a, 2, l] * E[k, 0, l])
+                o2 += 0.5 * (dE[k, a, 1, l] * E[k, 0, l] - dE[k, a, 0, l] * E[k, 1, l])
+            for i in range(3):
+                z[i] = Pprev[k, i, 0] * y0 + Pprev[k, i, 1] * y1 + Pprev[k, i, 2] * y2
+                z[3 + i] = Pprev[k, i, 0] * o0 + Pprev[k, i, 1] * o1 + Pprev[k, i, 2] * o2
+            for c in range(nq):
+                d = dOm[k, a, c]
+                if d != 0.0:
+                    for i in range(6):
+                        Pq[i, c] += z[i] * d
+    # the tip tube's angle about the last frame's z
+    for j in range(N):
+        if tip_tube[j] != 0.0:
+            for c in range(nq):
+                d = tip_tube[j] * dpsi[j, c]
+                if d != 0.0:
+                    for i in range(3):
+                        Pq[3 + i, c] += P[i, 2] * d
