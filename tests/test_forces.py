@@ -70,13 +70,46 @@ def test_closed_form_matches_on_a_batch_across_the_workspace():
     _assert_same(eq)
 
 
-def test_loaded_solves_keep_the_reverse_pass():
-    """With a tip load the work moves with D through the Magnus chain: the solver then uses the
-    reverse pass, and its forces equal it exactly."""
+def _assert_tip_force_same(eq, q=None):
+    """The tip-force path (elastic closed form minus ``F . P_x``) of both kernels' tip
+    partials against the reverse pass through the loaded potential, to 1e-9 relative."""
+    from torchpvs.forces import envelope_forces_tip_force
+    from torchpvs.kernel import KERNELS
+    tubes = eq.context.tubes
+    ref = envelope_forces_autograd(tubes, _state(eq, q))
+    for kernel in KERNELS.values():
+        got = envelope_forces_tip_force(tubes, _state(eq, q), kernel.partials,
+                                        kernel.tip_partials)
+        for r, g, name in zip(ref, got, ("tau_D [N]", "tau_alpha [N m]"), strict=True):
+            tol = 1e-9 * (float(r.abs().max()) + 1e-3)
+            assert (r - g).abs().max() <= tol, (name, r, g)
+
+
+@settings(max_examples=15, deadline=None, suppress_health_check=list(HealthCheck))
+@given(scene_strategy())
+def test_tip_force_path_matches_reverse_pass(d):
+    """Random scenes under a dead tip force (coordinates on the distal sections): the forces'
+    closed form of the elastic energy minus the work along the tip partials equals the reverse
+    pass through the loaded potential, at the equilibrium and off it, on both kernels."""
+    d["load"] = {"tip_force": [0.2, -0.1, 0.3], "tip_moment": [0.0, 0.0, 0.0]}
+    eq = tp.solve(tp.Scene.from_dict(d), options=tp.SolverOptions(on_failure="ignore", order=2))
+    assert eq.context.implicit.with_load and not eq.context.implicit.has_moment
+    _assert_tip_force_same(eq)
+    g = torch.Generator().manual_seed(0)
+    noise = torch.randn(eq.q.shape, generator=g, dtype=eq.q.dtype)
+    _assert_tip_force_same(eq, eq.q + 0.3 * noise * eq.context.implicit.qmask)
+
+
+def test_loaded_solves_use_the_tip_force_path_and_a_moment_the_reverse_pass():
+    """With a tip force the solver's forces are the tip-force path's (to rounding of the
+    reverse pass, 1e-9); with a tip moment (not conservative) the reverse pass itself."""
     scene = tp.load_scene("renda2021_fig3")
-    eq = tp.solve(scene, rotation=torch.tensor([0.0, 1.0], dtype=torch.float64),
-                  tip_force=torch.tensor([0.0, 0.3, 0.0], dtype=torch.float64),
-                  insertion=torch.tensor([0.05, 0.06], dtype=torch.float64))
+    kw = dict(rotation=torch.tensor([0.0, 1.0], dtype=torch.float64),
+              insertion=torch.tensor([0.05, 0.06], dtype=torch.float64))
+    eq = tp.solve(scene, tip_force=torch.tensor([0.0, 0.3, 0.0], dtype=torch.float64), **kw)
+    ref, _ = envelope_forces_autograd(eq.context.tubes, _state(eq))
+    torch.testing.assert_close(eq.actuation_forces, ref, rtol=1e-9, atol=1e-12)
+    eq = tp.solve(scene, tip_moment=torch.tensor([0.0, 0.01, 0.0], dtype=torch.float64), **kw)
     ref, _ = envelope_forces_autograd(eq.context.tubes, _state(eq))
     assert torch.equal(eq.actuation_forces, ref)
 

@@ -323,7 +323,8 @@ class Equilibrium:
                 lambda name, compute: plan.cached(res.disc, lay, name, compute))
             forces, torques, insert_side, kink = equilibrium_forces(
                 tubes, state, resolver.near, cache=cache,
-                partials=KERNELS[opts.kernel].partials)
+                partials=KERNELS[opts.kernel].partials,
+                tip_partials=KERNELS[opts.kernel].tip_partials)
         conv = res.converged
         # A verdict needs an equilibrium: where the solve did not converge, the state is not
         # one, and its Hessian's sign says nothing about stability (a precurvature of 1e6 1/m

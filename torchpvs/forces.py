@@ -68,7 +68,7 @@ class ForceState(NamedTuple):
     node_constants: NodeConstants | None = None
 
 
-def envelope_forces(tubes, res: ForceState, partials=None):
+def envelope_forces(tubes, res: ForceState, partials=None, tip_partials=None):
     """``tau_D = dU*/dD``, ``tau_alpha = dU*/dalpha`` by the envelope theorem: at an equilibrium
     the total derivative equals the partial derivative at fixed coordinates ``q`` (the sections
     move with ``D``, the coordinates are strains on the normalized section coordinate).
@@ -76,13 +76,35 @@ def envelope_forces(tubes, res: ForceState, partials=None):
     Without tip load the partial derivative is evaluated in closed form
     (:func:`envelope_forces_closed_form`); with a load, whose work moves with ``D`` through the
     whole Magnus chain, by a reverse pass through the layout and the potential
-    (:func:`envelope_forces_autograd`, the reference the closed form is tested against).
+    (:func:`envelope_forces_autograd`, the reference the closed form is tested against), or,
+    for a dead tip force given ``tip_partials``, as the closed form of the elastic energy minus
+    the force's work along the tip's partials (:func:`envelope_forces_tip_force`).
     ``partials``: the closed form's implementation, ``partials(q, lay, tubes, tab, disc,
     const) -> (tau_D, tau_alpha)`` (a kernel's :attr:`~torchpvs.kernel.Kernel.partials`;
-    default :func:`closed_form_partials`)."""
+    default :func:`closed_form_partials`); ``tip_partials``: a kernel's
+    :attr:`~torchpvs.kernel.Kernel.tip_partials`."""
     if res.with_load:
-        return envelope_forces_autograd(tubes, res)
+        if res.has_moment or tip_partials is None:
+            return envelope_forces_autograd(tubes, res)
+        return envelope_forces_tip_force(tubes, res, partials, tip_partials)
     return envelope_forces_closed_form(tubes, res, partials)
+
+
+def envelope_forces_tip_force(tubes, res: ForceState, partials, tip_partials):
+    """:func:`envelope_forces` under a dead tip force ``F`` (no moment): the potential is
+    ``U = E - F . p_tip``, so at fixed ``q`` ``dU/dx = dE/dx - F . dp_tip/dx``: the elastic
+    closed form (:func:`closed_form_partials`, on the loaded layout) and the tip position's
+    partials ``P_D``, ``P_alpha`` of the kernel's ``tip_partials`` (compiled: a complex step of
+    the pose; eager: a reverse pass). Returns ``(tau_D, tau_alpha)``, ``(B, N)`` [N, N·m]."""
+    tau_D, tau_A = envelope_forces_closed_form(tubes, res, partials)
+    # the eager kernel's tip partials take a reverse pass: ordinary tensors, whatever the
+    # mode of the solve (inference tensors cannot enter a graph)
+    with torch.inference_mode(False):
+        q, D, A, loaded = (t.detach().clone() for t in (res.q, res.D, res.alpha, res.loaded))
+        _, PD, PA = tip_partials(q, tubes.map(lambda t: t.detach().clone()), D, A, loaded,
+                                 res.tab, res.disc, None)
+        F = res.F.detach()[:, :, None]
+        return (tau_D - (F * PD[:, :3]).sum(1)).detach(), (tau_A - (F * PA[:, :3]).sum(1)).detach()
 
 
 def envelope_forces_autograd(tubes, res: ForceState):
@@ -432,7 +454,7 @@ def _kink_plan(tubes, D: torch.Tensor, delta: float, tol: float) -> KinkPlan:
 
 
 def equilibrium_forces(tubes, res: ForceState, resolve, delta: float = KINK_DELTA,
-                       tol: float = KINK_TOL, cache=None, partials=None):
+                       tol: float = KINK_TOL, cache=None, partials=None, tip_partials=None):
     """Actuation forces and torques ``(B, N)`` at the equilibrium ``res``,
     with one-sided insertion forces where ``U*(D_j)`` has a kink: material of tube ``j`` changing
     kind exactly at the orifice -- its base (``D_j = 0``: the guide torsion appears), its
@@ -448,7 +470,8 @@ def equilibrium_forces(tubes, res: ForceState, resolve, delta: float = KINK_DELT
 
     ``cache(key, compute)``: where given, the kink analysis (:func:`_kink_plan`) is kept with
     the solve's layout (``torchpvs.plan.Plan.cached``) and reused while the insertions are.
-    ``partials``: the closed form's implementation (:func:`envelope_forces`).
+    ``partials``, ``tip_partials``: the kernel's closed form and tip partials
+    (:func:`envelope_forces`).
 
     Returns ``(forces = retraction side, torques, insertion side, kink mask)``, all ``(B, N)``;
     the insertion side is NaN where the carriage cannot move in (blocked by the next base).
@@ -472,7 +495,8 @@ def equilibrium_forces(tubes, res: ForceState, resolve, delta: float = KINK_DELT
             (name, delta, tol), lambda: node_constants(state.lay, xq)))
 
     if kp.sel is None:
-        forces, torques = envelope_forces(tubes, with_constants(res, "force_nodes"), partials)
+        forces, torques = envelope_forces(tubes, with_constants(res, "force_nodes"), partials,
+                                          tip_partials)
         insertion = forces.clone()
         insertion[blocked] = float("nan")
         return forces, torques, insertion, kink
@@ -487,7 +511,7 @@ def equilibrium_forces(tubes, res: ForceState, resolve, delta: float = KINK_DELT
                                                  zip(res.lay, side.lay, strict=True))))
     tubes_both = tube_rows(tubes, torch.cat([torch.arange(B, device=sel.device), sel]))
     allf, allt = envelope_forces(tubes_both, with_constants(both, "force_nodes_sides"),
-                                 partials)
+                                 partials, tip_partials)
     forces, torques, vals = allf[:B], allt[:B], allf[B:][torch.arange(len(sel)), sj]
     insertion = forces.clone()
     insertion[blocked] = float("nan")
