@@ -1331,51 +1331,50 @@ def _stiffness_parallel(q, qmask, D, L, Ls, EI, GJ, coef, tau, psi0, start, h, p
 
 @_jit
 def se3_coefficients(t2, small):
-    """lie._coefficients: sin t / t, (1 - cos t) / t^2, (t - sin t) / t^3 of t^2."""
-    if t2 < small:
+    """lie._coefficients: sin t / t, (1 - cos t) / t^2, (t - sin t) / t^3 of t^2, real or
+    complex (the complex step of :func:`tip_partials_one`: the branches are taken on the real
+    part, and both are analytic, so the complex step through them is exact)."""
+    if t2.real < small:
         a = 1 - t2 / 6 + t2 * t2 / 120
         half = 0.5 - t2 / 48 + t2 * t2 / 3840
     else:
-        t = math.sqrt(t2)
-        a = math.sin(t) / t
-        half = math.sin(0.5 * t) / t
+        t = np.sqrt(t2)
+        a = np.sin(t) / t
+        half = np.sin(0.5 * t) / t
     b = 2 * half * half
-    if t2 < 0.1:
+    if t2.real < 0.1:
         c = (1.0 / 6 - t2 / 120 + t2 * t2 / 5040 - t2 ** 3 / 362880 + t2 ** 4 / 39916800)
     else:
-        t = math.sqrt(t2)
-        c = (t - math.sin(t)) / (t * t * t)
+        t = np.sqrt(t2)
+        c = (t - np.sin(t)) / (t * t * t)
     return a, b, c
 
 
 @_jit
-def right_multiply_exp(g, om, small, tmp):
-    """g <- g exp(om) for a twist om = (omega, v) (lie.exp_se3, entry by entry)."""
-    wx, wy, wz, vx, vy, vz = om[0], om[1], om[2], om[3], om[4], om[5]
-    t2 = wx * wx + wy * wy + wz * wz
-    a, b, c = se3_coefficients(t2, small)
-    d = 1 - b * t2
-    e = 1 - c * t2
-    cwv = c * (wx * vx + wy * vy + wz * vz)
-    E = np.empty((4, 4), dtype=g.dtype)
-    E[0, 0] = d + b * wx * wx
-    E[0, 1] = b * wx * wy - a * wz
-    E[0, 2] = b * wx * wz + a * wy
-    E[1, 0] = b * wx * wy + a * wz
-    E[1, 1] = d + b * wy * wy
-    E[1, 2] = b * wy * wz - a * wx
-    E[2, 0] = b * wx * wz - a * wy
-    E[2, 1] = b * wy * wz + a * wx
-    E[2, 2] = d + b * wz * wz
-    E[0, 3] = e * vx + b * (wy * vz - wz * vy) + cwv * wx
-    E[1, 3] = e * vy + b * (wz * vx - wx * vz) + cwv * wy
-    E[2, 3] = e * vz + b * (wx * vy - wy * vx) + cwv * wz
-    E[3, 0] = 0.0
-    E[3, 1] = 0.0
-    E[3, 2] = 0.0
-    E[3, 3] = 1.0
-    mat4(g, E, tmp)
-    g[:, :] = tmp
+def magnus_twist(u, i, hs, kq, om):
+    """Magnus step ``i``'s 4th-order twist into ``om (6,)`` from the bending ``u (G, 2)`` at its
+    two Gauss nodes (``hs`` the step length, ``kq = sqrt(3)/12 hs^2``)."""
+    u1x, u1y = u[2 * i, 0], u[2 * i, 1]
+    u2x, u2y = u[2 * i + 1, 0], u[2 * i + 1, 1]
+    om[0] = 0.5 * hs * (u1x + u2x)
+    om[1] = 0.5 * hs * (u1y + u2y)
+    om[2] = kq * (u1x * u2y - u1y * u2x)
+    om[3] = kq * (u1y - u2y)
+    om[4] = -kq * (u1x - u2x)
+    om[5] = hs
+
+
+@_jit
+def tip_frame(g, angle, tip, R):
+    """The tip position ``tip (3,)`` and the tip tube's frame ``R (3, 3)``: the backbone frame
+    ``g (4, 4)`` turned by the tube's ``angle`` about its ``z``."""
+    ca = np.cos(angle)
+    sa = np.sin(angle)
+    for i in range(3):
+        tip[i] = g[i, 3]
+        R[i, 0] = g[i, 0] * ca + g[i, 1] * sa
+        R[i, 1] = -g[i, 0] * sa + g[i, 1] * ca
+        R[i, 2] = g[i, 2]
 
 
 @_jit
@@ -1393,6 +1392,7 @@ def pose_one(q, qm, psi0_base, D, tip_tube, sec, h, presc_inc, us_held, presc_lo
     for j in range(N):
         psi0[j] = psi0_base[j] + D[j] * (q[j] * qm[j])
     g = np.eye(4, dtype=dt)
+    E = np.empty((4, 4), dtype=dt)
     tmp = np.empty((4, 4), dtype=dt)
     om = np.empty(6, dtype=dt)
     start = psi0.copy()
@@ -1423,15 +1423,8 @@ def pose_one(q, qm, psi0_base, D, tip_tube, sec, h, presc_inc, us_held, presc_lo
         hs = hk / m
         kq = k3 * hs * hs
         for i in range(m):
-            u1x, u1y = u[2 * i, 0], u[2 * i, 1]
-            u2x, u2y = u[2 * i + 1, 0], u[2 * i + 1, 1]
-            om[0] = 0.5 * hs * (u1x + u2x)
-            om[1] = 0.5 * hs * (u1y + u2y)
-            om[2] = kq * (u1x * u2y - u1y * u2x)
-            om[3] = kq * (u1y - u2y)
-            om[4] = -kq * (u1x - u2x)
-            om[5] = hs
-            right_multiply_exp(g, om, small, tmp)
+            magnus_twist(u, i, hs, kq, om)
+            exp_right_any(g, om, small, E, tmp)
         for j in range(N):
             c0 = q[off + (2 + j) * n] * qm[off + (2 + j) * n]
             start[j] += hk * c0 + presc_inc[kk, j]
@@ -1439,13 +1432,7 @@ def pose_one(q, qm, psi0_base, D, tip_tube, sec, h, presc_inc, us_held, presc_lo
     for j in range(N):
         psi_tip[j] = start[j]
         angle += start[j] * tip_tube[j]
-    ca = math.cos(angle)
-    sa = math.sin(angle)
-    for i in range(3):
-        tip[i] = g[i, 3]
-        R[i, 0] = g[i, 0] * ca + g[i, 1] * sa
-        R[i, 1] = -g[i, 0] * sa + g[i, 1] * ca
-        R[i, 2] = g[i, 2]
+    tip_frame(g, angle, tip, R)
 
 
 @cached_jit(nogil=True)
@@ -1472,24 +1459,12 @@ def _pose_parallel(q, qm, psi0, D, tip_tube, sec, h, presc_inc, us_held, presc_l
 
 @_jit
 def exp_right_any(g, om, small, E, tmp):
-    """:func:`right_multiply_exp` for real or complex twists (the complex step of
-    :func:`tip_partials_one`): the branch on ``|omega|^2`` is taken on its real part, and both
-    branches are analytic, so the complex step through it is exact."""
+    """``g <- g exp(om)`` (4 x 4) for a twist ``om = (omega, v)`` (lie.exp_se3, entry by entry),
+    real or complex (:func:`se3_coefficients`); ``E``, ``tmp``: 4 x 4 scratch of ``g``'s
+    dtype. The product skips the exponential's last row ``(0, 0, 0, 1)``."""
     wx, wy, wz, vx, vy, vz = om[0], om[1], om[2], om[3], om[4], om[5]
     t2 = wx * wx + wy * wy + wz * wz
-    if t2.real < small:
-        a = 1 - t2 / 6 + t2 * t2 / 120
-        half = 0.5 - t2 / 48 + t2 * t2 / 3840
-    else:
-        t = np.sqrt(t2)
-        a = np.sin(t) / t
-        half = np.sin(0.5 * t) / t
-    b = 2 * half * half
-    if t2.real < 0.1:
-        c = (1.0 / 6 - t2 / 120 + t2 * t2 / 5040 - t2 ** 3 / 362880 + t2 ** 4 / 39916800)
-    else:
-        t = np.sqrt(t2)
-        c = (t - np.sin(t)) / (t * t * t)
+    a, b, c = se3_coefficients(t2, small)
     d = 1 - b * t2
     e = 1 - c * t2
     cwv = c * (wx * vx + wy * vy + wz * vz)
@@ -1587,14 +1562,7 @@ def tip_twist_core(q, Dc, dA, qmask, D, L, Ls, coef, tau, psi0, start, h, presen
         hs = hk / m
         kq = k3 * hs * hs
         for i in range(m):
-            u1x, u1y = u[2 * i, 0], u[2 * i, 1]
-            u2x, u2y = u[2 * i + 1, 0], u[2 * i + 1, 1]
-            om[0] = 0.5 * hs * (u1x + u2x)
-            om[1] = 0.5 * hs * (u1y + u2y)
-            om[2] = kq * (u1x * u2y - u1y * u2x)
-            om[3] = kq * (u1y - u2y)
-            om[4] = -kq * (u1x - u2x)
-            om[5] = hs
+            magnus_twist(u, i, hs, kq, om)
             exp_right_any(g, om, small, E, tmp)
         for j in range(N):
             f = off + (2 + j) * n
@@ -1603,13 +1571,7 @@ def tip_twist_core(q, Dc, dA, qmask, D, L, Ls, coef, tau, psi0, start, h, presen
     angle = 0.0 * psi[0]
     for j in range(N):
         angle += psi[j] * tip_tube[j]
-    ca = np.cos(angle)
-    sa = np.sin(angle)
-    for i in range(3):
-        tip[i] = g[i, 3]
-        R[i, 0] = g[i, 0] * ca + g[i, 1] * sa
-        R[i, 1] = -g[i, 0] * sa + g[i, 1] * ca
-        R[i, 2] = g[i, 2]
+    tip_frame(g, angle, tip, R)
 
 
 @_jit
@@ -1786,14 +1748,9 @@ def tip_partials_q_one(q, qmask, D, coef, tau, psi0, start, h, present, curved, 
         hs = hk / m
         kq = k3 * hs * hs
         for i in range(m):
+            magnus_twist(u, i, hs, kq, Om[ks])
             u1x, u1y = u[2 * i, 0], u[2 * i, 1]
             u2x, u2y = u[2 * i + 1, 0], u[2 * i + 1, 1]
-            Om[ks, 0] = 0.5 * hs * (u1x + u2x)
-            Om[ks, 1] = 0.5 * hs * (u1y + u2y)
-            Om[ks, 2] = kq * (u1x * u2y - u1y * u2x)
-            Om[ks, 3] = kq * (u1y - u2y)
-            Om[ks, 4] = -kq * (u1x - u2x)
-            Om[ks, 5] = hs
             for c in range(nq):
                 d1x, d1y = du[2 * i, 0, c], du[2 * i, 1, c]
                 d2x, d2y = du[2 * i + 1, 0, c], du[2 * i + 1, 1, c]
