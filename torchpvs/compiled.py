@@ -281,9 +281,10 @@ def tip_partials(q: torch.Tensor, lay, tubes, tab) -> tuple | None:
     """The tip's partials at fixed ``q (B, nq)`` on the layout ``lay`` (the tube rows
     ``tubes``): ``(P_q (B, 6, nq), P_D (B, 6, N), P_alpha (B, 6, N))``, rows the tip position
     [m] and spatial rotation [rad] (:func:`torchpvs.mechanics.tip_partials`), zero on the
-    inactive coordinates, by a complex step per coordinate and actuator
-    (:func:`tip_partials_one`). None where the compiled kernel does not apply (a tensor that
-    requires grad, not CPU). Computed in float64 (complex128), returned in ``q``'s dtype."""
+    inactive coordinates: ``P_q`` through the Magnus chain, ``P_D`` and ``P_alpha`` by a complex
+    step of the pose per actuator (:func:`tip_partials_one`). None where the compiled kernel
+    does not apply (a tensor that requires grad, not CPU). Computed in float64 (complex128),
+    returned in ``q``'s dtype."""
     args = _layout_arrays(q, lay, tubes, tab)
     if args is None:
         return None
@@ -1583,31 +1584,27 @@ def tip_partials_one(q, qmask, D, L, Ls, coef, tau, psi0, start, h, present, cur
     rounding: no difference is taken); rows the tip position [m] and the spatial rotation
     ``vee(skew(dR R^T))`` [rad]."""
     N = D.shape[0]
-    nq = q.shape[0]
     eps = 1e-20
-    qc = np.empty(nq, dtype=np.complex128)
     Dc = np.empty(N, dtype=np.complex128)
     dA = np.zeros(N, dtype=np.complex128)
     tip = np.empty(3, dtype=np.complex128)
     R = np.empty((3, 3), dtype=np.complex128)
-    for c in range(nq):
-        qc[c] = q[c]
     for j in range(N):
         Dc[j] = D[j]
     tip_partials_q_one(q, qmask, D, coef, tau, psi0, start, h, present, curved, presc, tip_tube,
                        xm, phi, Qb, Pq)
-    for d in range(nq, nq + 2 * N):
-        if d < nq + N:
-            Dc[d - nq] = D[d - nq] + 1j * eps
+    for d in range(2 * N):          # the insertions, then the rotations
+        if d < N:
+            Dc[d] = D[d] + 1j * eps
         else:
-            dA[d - nq - N] = 1j * eps
-        tip_twist_core(qc, Dc, dA, qmask, D, L, Ls, coef, tau, psi0, start, h, present, curved,
+            dA[d - N] = 1j * eps
+        tip_twist_core(q, Dc, dA, qmask, D, L, Ls, coef, tau, psi0, start, h, present, curved,
                        presc, tip_tube, xm, phi, Qb, 1e-6, tip, R)
-        col = Px[:, d - nq]
-        if d < nq + N:
-            Dc[d - nq] = D[d - nq]
+        col = Px[:, d]
+        if d < N:
+            Dc[d] = D[d]
         else:
-            dA[d - nq - N] = 0.0
+            dA[d - N] = 0.0
         for i in range(3):
             col[i] = tip[i].imag / eps
         # spatial rotation: vee of the skew part of dR R^T

@@ -97,14 +97,10 @@ def envelope_forces_tip_force(tubes, res: ForceState, partials, tip_partials):
     partials ``P_D``, ``P_alpha`` of the kernel's ``tip_partials`` (compiled: a complex step of
     the pose; eager: a reverse pass). Returns ``(tau_D, tau_alpha)``, ``(B, N)`` [N, N·m]."""
     tau_D, tau_A = envelope_forces_closed_form(tubes, res, partials)
-    # the eager kernel's tip partials take a reverse pass: ordinary tensors, whatever the
-    # mode of the solve (inference tensors cannot enter a graph)
-    with torch.inference_mode(False):
-        q, D, A, loaded = (t.detach().clone() for t in (res.q, res.D, res.alpha, res.loaded))
-        _, PD, PA = tip_partials(q, tubes.map(lambda t: t.detach().clone()), D, A, loaded,
-                                 res.tab, res.disc, None)
-        F = res.F.detach()[:, :, None]
-        return (tau_D - (F * PD[:, :3]).sum(1)).detach(), (tau_A - (F * PA[:, :3]).sum(1)).detach()
+    _, PD, PA = tip_partials(res.q.detach(), tubes, res.D.detach(), res.alpha.detach(),
+                             res.loaded, res.tab, res.disc, None)
+    F = res.F.detach()[:, :, None]
+    return tau_D - (F * PD[:, :3]).sum(1), tau_A - (F * PA[:, :3]).sum(1)
 
 
 def envelope_forces_autograd(tubes, res: ForceState):

@@ -233,8 +233,9 @@ def _schur(eq, rows: torch.Tensor, tip: bool = False, D=None):
 def _tip_partials(eq, rows: torch.Tensor, D=None, layout=None):
     """``(P_q (B, 6, nq), P_x (B, 6, 2N))``: the tip twist (position [m], spatial rotation
     [rad]) per coordinate and per actuator at fixed ``q``, zero on the inactive coordinates,
-    from the equilibrium's kernel (:attr:`~torchpvs.kernel.Kernel.tip_partials`: compiled, a
-    complex step per direction; eager, one reverse pass over the batch repeated 6 times), at
+    from the equilibrium's kernel (:attr:`~torchpvs.kernel.Kernel.tip_partials`: compiled,
+    the Magnus chain in ``q`` and a complex step per actuator; eager, one reverse pass over the
+    batch repeated 6 times), at
     the insertions ``D (B, N)`` instead of the equilibrium's where given (a kink's side);
     ``layout``: the layout there where the caller has it (:func:`_layout_at`)."""
     ctx = eq.context

@@ -262,8 +262,8 @@ def _compiled_pose(q, lay, tab, constants):
 
 #: The compiled CPU kernel (:mod:`torchpvs.compiled`, numba): the Newton solve and step, the
 #: new-section step, the tip pose, the closed-form force partials, the stiffness's actuator
-#: rows (a complex step of the partials) and the tip partials (a complex step of the pose) per
-#: element; the eager
+#: rows (a complex step of the partials) and the tip partials (the Magnus chain in ``q``, a
+#: complex step of the pose in the actuators) per element; the eager
 #: kernel wherever it does not apply (GPU tensors; a tip moment for the solve and step, a tip
 #: load for the new-section step; partials that must carry a graph).
 COMPILED = EAGER._replace(solve=_compiled_solve, step=_compiled_step,

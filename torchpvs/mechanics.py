@@ -386,18 +386,20 @@ def tip_partials(q: torch.Tensor, tubes, D: torch.Tensor, alpha: torch.Tensor,
     :func:`tip_pose` over the batch repeated 6 times (replica ``r`` of an element
     back-propagates its row ``r``). ``tubes`` broadcastable to ``(B, N)``; ``loaded (B,)`` the
     layout's load flags; ``layout``: unused here (the pass needs its own, built from inputs
-    that require grad)."""
+    that require grad). Callable in inference mode (a solve's forces under a tip force): the
+    pass runs on ordinary copies."""
     B = q.shape[0]
-    idx = torch.arange(B, device=q.device).repeat_interleave(6)
-    tb = tube_rows(tubes, idx)
-    qr, Dr, Ar = (t.detach()[idx].requires_grad_(True) for t in (q, D, alpha))
-    zero = torch.zeros(B * 6, 3, dtype=q.dtype, device=q.device)
-    pick = torch.eye(6, dtype=q.dtype, device=q.device).repeat(B, 1)        # (B 6, 6)
-    with torch.enable_grad():
+    with torch.inference_mode(False), torch.enable_grad():
+        idx = torch.arange(B, device=q.device).repeat_interleave(6)
+        # indexing outside inference mode makes ordinary tensors; shared tube rows are cloned
+        # where they are inference tensors (autograd cannot save those)
+        tb = tube_rows(tubes, idx).map(lambda t: t.clone() if t.is_inference() else t)
+        qr, Dr, Ar = (t.detach()[idx].requires_grad_(True) for t in (q, D, alpha))
+        zero = torch.zeros(B * 6, 3, dtype=q.dtype, device=q.device)
+        pick = torch.eye(6, dtype=q.dtype, device=q.device).repeat(B, 1)    # (B 6, 6)
         lay = build_layout(tb, Dr, Ar, zero, zero, loaded[idx], disc)
-        Pq, PD, PA = (g.reshape(B, 6, -1) for g in torch.autograd.grad(
+        return tuple(g.reshape(B, 6, -1) for g in torch.autograd.grad(
             (tip_twist(qr, lay, tab) * pick).sum(), (qr, Dr, Ar)))
-    return Pq, PD, PA
 
 
 def skew_vee(A: torch.Tensor) -> torch.Tensor:
