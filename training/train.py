@@ -282,11 +282,13 @@ def _callbacks(algo, env_id, hp, venv_train, run_dir: Path, seed: int, total: in
 def train(algo: str, env_id: str, hp: dict, *, steps: int | None = None, seed: int = 0,
           out: str | Path = "runs", progress: bool = True, threads: int = 1,
           eval_freq: int = 20_000, eval_episodes: int = 200, max_minutes: float | None = None,
-          argv: list[str] | None = None, init_from: str | Path | None = None) -> Path:
+          argv: list[str] | None = None, init_from: str | Path | None = None,
+          widen: bool = False) -> Path:
     """Train ``algo`` on ``env_id`` with the (checked, overridden) entry ``hp``; returns the
     run folder. ``init_from``: a saved model (``.zip`` of the same algorithm, observation and
     action spaces) whose networks start the run (fine-tuning on another task; the replay
-    buffer starts empty)."""
+    buffer starts empty). ``widen``: the entry's networks are wider than ``init_from``'s; start
+    from its function, widened (Net2WiderNet, :mod:`training.widen`; fresh optimizers)."""
     import torch
     from stable_baselines3.common.vec_env import VecMonitor, VecNormalize
 
@@ -319,7 +321,11 @@ def train(algo: str, env_id: str, hp: dict, *, steps: int | None = None, seed: i
     model = make_model(algo, hp, venv, seed, run_dir)
     if init_from is not None:
         try:
-            model.set_parameters(str(init_from), exact_match=True, device="cpu")
+            if widen:
+                from .widen import widen_into
+                widen_into(model, init_from, seed=seed)
+            else:
+                model.set_parameters(str(init_from), exact_match=True, device="cpu")
             _load_tensor_variables(model, init_from)
         except (OSError, ValueError, RuntimeError, KeyError) as e:
             raise ValueError(f"--init-from {init_from}: cannot load its networks into a "
@@ -341,6 +347,8 @@ def train(algo: str, env_id: str, hp: dict, *, steps: int | None = None, seed: i
         meta["residual"] = res
     if init_from is not None:
         meta["init_from"] = str(init_from)
+        if widen:
+            meta["widened"] = True
     (run_dir / "model.json").write_text(json.dumps(meta, indent=2))
     if (run_dir / "best_model.zip").exists():  # the eval callback's best: same algo/env/residual
         (run_dir / "best_model.json").write_text(json.dumps(meta, indent=2))
@@ -399,8 +407,13 @@ def main(argv: list[str] | None = None) -> int:
                    help="stop after this much wall time (the model so far is saved)")
     p.add_argument("--init-from", default=None, metavar="MODEL_ZIP",
                    help="start from this saved model's networks (fine-tuning)")
+    p.add_argument("--widen", action="store_true",
+                   help="with --init-from: this run's net_arch is wider than the model's; "
+                        "start from its function, widened (Net2WiderNet, training/widen.py)")
     p.add_argument("--no-progress", action="store_true")
     args = p.parse_args(argv)
+    if args.widen and args.init_from is None:
+        p.error("--widen: needs --init-from (the model to widen)")
     try:
         hp = load_hyperparams(args.algo, args.env, args.conf_file)
         hp.update(parse_pairs(args.hyperparams, "--hyperparams"))
@@ -421,7 +434,8 @@ def main(argv: list[str] | None = None) -> int:
     train(args.algo, args.env, hp, steps=args.n_timesteps, seed=args.seed, out=args.out,
           progress=not args.no_progress and sys.stderr.isatty(), threads=args.threads,
           eval_freq=args.eval_freq, eval_episodes=args.eval_episodes,
-          max_minutes=args.max_minutes, argv=argv, init_from=args.init_from)
+          max_minutes=args.max_minutes, argv=argv, init_from=args.init_from,
+          widen=args.widen)
     return 0
 
 

@@ -1,0 +1,129 @@
+"""Net2WiderNet widening of SB3 SAC/TQC policies (training/widen.py): the wider networks
+compute the source's function exactly at zero noise (Chen et al. 2016, the function-preserving
+transform), the copies drift apart with noise, and mismatched networks are refused by name."""
+
+from __future__ import annotations
+
+import json
+
+import pytest
+import torch
+
+import envs  # noqa: F401  (registers the env ids)
+from training import train
+from training.widen import widen_state_dict
+
+ZOO_ENV = "torchpvs/CTRReachForce-v0"
+
+
+def _policies(src_arch, dst_arch, algo="tqc"):
+    """Two policies of the force env's spaces, with random weights."""
+    import gymnasium as gym
+    if algo == "tqc":
+        from sb3_contrib.tqc.policies import MultiInputPolicy
+    else:
+        from stable_baselines3.sac.policies import MultiInputPolicy
+    env = gym.make(ZOO_ENV, max_episode_steps=5)
+    torch.manual_seed(0)
+    make = lambda arch: MultiInputPolicy(env.observation_space, env.action_space,  # noqa: E731
+                                         lambda _: 1e-3, net_arch=arch)
+    src, dst = make(src_arch), make(dst_arch)
+    env.observation_space.seed(0)
+    obs = {k: torch.stack([torch.as_tensor(sp.sample(), dtype=torch.float32) for _ in range(32)])
+           for k, sp in env.observation_space.spaces.items()}
+    env.close()
+    return src, dst, obs
+
+
+def _outputs(policy, obs):
+    """Deterministic actions, the action distribution's log std and every critic's output."""
+    def flat(q):  # SAC: a tuple of (B, 1) per critic; TQC: (B, critics, quantiles)
+        return torch.cat([c.flatten(1) for c in q], 1) if isinstance(q, tuple) else q.flatten(1)
+    with torch.no_grad():
+        mean, log_std, _ = policy.actor.get_action_dist_params(obs)
+        act = policy.actor(obs, deterministic=True)
+        return mean, log_std, flat(policy.critic(obs, act)), flat(policy.critic_target(obs, act))
+
+
+@pytest.mark.parametrize("algo", ["tqc", "sac"])
+def test_widening_keeps_the_function_exactly_without_noise(algo):
+    src, dst, obs = _policies([16, 12], [40, 12 + 7], algo)
+    # a target that differs from its critic (as after Polyak averaging): its own mapping must
+    # match the critic's so the pair stays consistent
+    with torch.no_grad():
+        for p in src.critic_target.parameters():
+            p.add_(0.05 * torch.randn_like(p))
+    wide = widen_state_dict(src.state_dict(), dst.state_dict(), noise=0.0,
+                            generator=torch.Generator().manual_seed(1))
+    dst.load_state_dict(wide)
+    assert dst.actor.latent_pi[0].weight.shape == (40, src.actor.latent_pi[0].weight.shape[1])
+    for a, b in zip(_outputs(src, obs), _outputs(dst, obs), strict=True):
+        assert a.shape == b.shape
+        torch.testing.assert_close(b, a, rtol=1e-5, atol=1e-6)
+
+
+def test_a_target_critic_keeps_its_critics_unit_mapping():
+    """Polyak averaging mixes critic and target unit by unit: a target equal to its critic
+    stays equal after widening (independent copies would pair different units)."""
+    src, dst, _ = _policies([16, 16], [48, 40])
+    src.critic_target.load_state_dict(src.critic.state_dict())
+    wide = widen_state_dict(src.state_dict(), dst.state_dict(), noise=0.0,
+                            generator=torch.Generator().manual_seed(3))
+    for k, v in wide.items():
+        if k.startswith("critic."):
+            assert torch.equal(v, wide["critic_target." + k[len("critic."):]]), k
+
+
+def test_noise_separates_the_copies_but_stays_close_to_the_function():
+    src, dst, obs = _policies([16, 16], [32, 32])
+    wide = widen_state_dict(src.state_dict(), dst.state_dict(), noise=0.01,
+                            generator=torch.Generator().manual_seed(1))
+    W = wide["actor.latent_pi.0.weight"]
+    # every copy differs from the unit it was copied from
+    d = torch.cdist(W[16:], W[:16]).min(1).values
+    assert (d > 0).all()
+    dst.load_state_dict(wide)
+    (m0, *_), (m1, *_) = _outputs(src, obs), _outputs(dst, obs)
+    rel = float((m1 - m0).norm() / m0.norm())
+    assert 0 < rel < 0.05
+
+
+def test_mismatched_networks_are_refused_by_name():
+    src, dst, _ = _policies([16, 16], [8, 32])
+    with pytest.raises(ValueError, match=r"actor\.latent_pi\.0.*narrower"):
+        widen_state_dict(src.state_dict(), dst.state_dict())
+    src, dst, _ = _policies([16, 16], [32, 32, 32])
+    with pytest.raises(ValueError, match="different layers"):
+        widen_state_dict(src.state_dict(), dst.state_dict())
+    src, dst, _ = _policies([16], [32])
+    with pytest.raises(ValueError, match="noise"):
+        widen_state_dict(src.state_dict(), dst.state_dict(), noise=-1.0)
+
+
+def test_a_run_started_widened_keeps_the_source_agent_and_its_entropy(tmp_path):
+    """train(..., widen=True): the run's wider actor acts as the saved one did (before any
+    update) and carries its entropy coefficient; --widen without --init-from is refused."""
+    from stable_baselines3.common.save_util import load_from_zip_file
+    hp = train.load_hyperparams("sac", ZOO_ENV)
+    hp = {**hp, "n_envs": 2, "learning_starts": 50, "buffer_size": 1000, "batch_size": 32,
+          "env_kwargs": {**hp.get("env_kwargs", {}), "max_episode_steps": 20},
+          "policy_kwargs": "dict(net_arch=[16, 16])"}
+    first = train.train("sac", ZOO_ENV, hp, steps=100, seed=1, out=tmp_path / "a",
+                        progress=False, eval_freq=0, eval_episodes=0)
+    wide_hp = {**hp, "policy_kwargs": "dict(net_arch=[32, 24])", "learning_starts": 10**6}
+    run = train.train("sac", ZOO_ENV, wide_hp, steps=20, seed=2, out=tmp_path / "b",
+                      progress=False, eval_freq=0, eval_episodes=0,
+                      init_from=first / "model.zip", widen=True)
+    (_, pa, ta), (_, pb, tb) = (load_from_zip_file(r / "model.zip", device="cpu")
+                                for r in (first, run))
+    assert pb["policy"]["actor.latent_pi.0.weight"].shape[0] == 32
+    src, dst, obs = _policies([16, 16], [32, 24], "sac")
+    src.load_state_dict(pa["policy"])
+    dst.load_state_dict(pb["policy"])
+    (m0, *_), (m1, *_) = _outputs(src, obs), _outputs(dst, obs)
+    assert float((m1 - m0).norm() / m0.norm()) < 0.05
+    ea, eb = ta["log_ent_coef"].detach(), tb["log_ent_coef"].detach()
+    assert float(ea) != 0.0 and torch.equal(ea, eb)
+    assert json.loads((run / "model.json").read_text())["widened"] is True
+    with pytest.raises(SystemExit):
+        train.main(["--algo", "sac", "--env", ZOO_ENV, "--widen"])
