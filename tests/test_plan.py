@@ -115,3 +115,34 @@ def test_a_reused_layout_is_the_layout_built_afresh():
     for name, a, b in zip(ref._fields, lay, ref, strict=True):
         assert a.shape == b.shape and torch.allclose(a.to(b.dtype), b, rtol=1e-15, atol=0), name
     assert ctx.plan.reused_layout(ctx.tubes, D + 1e-3, A, info.loaded, info.disc) is None
+
+
+def test_rows_of_a_kept_layout_are_the_layout_built_afresh(monkeypatch):
+    """The one-sided forces re-solve both sides of the Fig. 3 kink in one batch of 2; the
+    control Jacobians then ask for the retraction side alone (a batch of 1). ``reused_layout``
+    returns that row of the kept layout: every field equals ``build_layout`` there, and the
+    control step builds no layout of its own. Rows that no kept layout holds get None."""
+    import torchpvs.jacobians as jac_mod
+    from torchpvs.sections import build_layout
+    sc = tp.load_scene("renda2021_fig3")
+    eq0 = tp.solve(sc)
+    eq = tp.solve(sc, rotation=[0.0, 1.0], initial=eq0)
+    assert bool(eq.force_kink.any())
+    ctx, info = eq.context, eq.context.implicit
+    D = ctx.insertion + torch.tensor([[1e-7, 0.0]], dtype=torch.float64)   # the side
+    A = torch.tensor([[0.3, -0.7]], dtype=torch.float64)
+    lay = ctx.plan.reused_layout(ctx.tubes, D, A, info.loaded, info.disc)
+    assert lay is not None
+    zero = torch.zeros(1, 3, dtype=torch.float64)
+    ref = build_layout(ctx.tubes, D, A, zero, zero, info.loaded, info.disc)
+    for name, a, b in zip(ref._fields, lay, ref, strict=True):
+        assert a.shape == b.shape and torch.allclose(a.to(b.dtype), b, rtol=1e-15, atol=0), name
+    both = torch.cat([D, ctx.insertion + torch.tensor([[3e-7, 0.0]], dtype=torch.float64)])
+    assert ctx.plan.reused_layout(ctx.tubes, both, A.expand(2, 2), info.loaded.expand(2),
+                                  info.disc) is None
+    built = []
+    real = jac_mod.build_layout
+    monkeypatch.setattr(jac_mod, "build_layout",
+                        lambda *a, **k: built.append(1) or real(*a, **k))
+    eq.jacobians(compliance=False)
+    assert not built

@@ -440,8 +440,11 @@ def control_jacobians(eq, *, compliance: bool = True,
             eqc = eq.solve_again(opts, eq)
         Pq = _tip_partials(eqc, rows)[0]
         C = (Pq @ _adjoint_rows(eqc, rows).solve(Pq.transpose(1, 2), tangent=True)).detach()
-    sv = torch.linalg.svdvals(K)
-    rank = (sv > rank_tol * sv[:, :1]).sum(-1)
-    Kp = torch.linalg.pinv(K, rtol=rank_tol)
+    # one SVD for the rank and the pseudo-inverse (pinv would take its own)
+    U, sv, Vh = torch.linalg.svd(K, full_matrices=False)
+    keep = sv > rank_tol * sv[:, :1]
+    rank = keep.sum(-1)
+    Kp = Vh.transpose(-2, -1) @ (torch.where(keep, 1.0 / sv, 0.0)[..., None]
+                                 * U.transpose(-2, -1))
     return ControlJacobians(actuator_stiffness=K, tip_jacobian=J, force_jacobian=J @ Kp,
                             tip_compliance=C, force_rank=rank)

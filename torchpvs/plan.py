@@ -23,7 +23,7 @@ import torch
 
 from .mechanics import Maps, build_maps
 from .scene import Scene
-from .sections import Discretization, Layout, TubeProperties, TubeTensors, build_layout
+from .sections import Discretization, Layout, TubeProperties, TubeTensors, build_layout, tube_rows
 
 __all__ = ["Plan", "plan_for", "tube_tensors"]
 
@@ -100,13 +100,30 @@ class Plan:
                       disc: Discretization) -> Layout | None:
         """The layout :meth:`layout` would return without building one: the last one at these
         insertions, loaded mask, discretization and tubes with the rotations ``A`` (and no
-        load), or None where there is none (the caller then builds its own)."""
+        load), or rows of a kept layout of another batch shape that hold every requested row
+        (the one-sided forces re-solve both sides of a kink in one batch, and the control
+        Jacobians ask for one side); None where there is none (the caller then builds its
+        own)."""
         memo = self._memo.get((disc, D.shape))
-        if (memo is None or not _same_tubes(memo.tubes, tubes) or not torch.equal(memo.D, D)
-                or not torch.equal(memo.loaded, loaded)):
-            return None
-        zero = torch.zeros_like(memo.lay.force)
-        return memo.lay._replace(psi0=memo.psi0_guide + A, alpha=A, force=zero, moment=zero)
+        if (memo is not None and _same_tubes(memo.tubes, tubes) and torch.equal(memo.D, D)
+                and torch.equal(memo.loaded, loaded)):
+            zero = torch.zeros_like(memo.lay.force)
+            return memo.lay._replace(psi0=memo.psi0_guide + A, alpha=A, force=zero,
+                                     moment=zero)
+        for (d, shape), memo in self._memo.items():
+            if d != disc or shape == D.shape or shape[1:] != D.shape[1:]:
+                continue
+            hit = ((memo.D[None] == D[:, None]).all(-1)
+                   & (memo.loaded[None] == loaded[:, None]))            # (k, B_memo)
+            if not bool(hit.any(-1).all()):
+                continue
+            idx = hit.to(torch.int8).argmax(-1)
+            if not _same_tubes(tube_rows(memo.tubes, idx), tubes):
+                continue
+            zero = torch.zeros(D.shape[0], 3, dtype=D.dtype, device=D.device)
+            return type(memo.lay)._make(t[idx] for t in memo.lay)._replace(
+                psi0=memo.psi0_guide[idx] + A, alpha=A, force=zero, moment=zero)
+        return None
 
     def cached(self, disc: Discretization, lay, key: Hashable, compute):
         """``compute()`` for a layout ``lay`` that :meth:`layout` returned for ``disc``, kept
