@@ -7,10 +7,11 @@ e.g. ``git worktree add /tmp/old <commit>`` then
 fresh process per checkout (``PYTHONPATH=<tree>``, one torch thread), old then new: Fig. 3 and
 the three-tube robot, 32 configurations (the last tube's rotation over [0, 250] deg), B = 1
 warm from the equilibrium 1 deg away and cold, the control step
-(``solve(...).jacobians(compliance=False)``, 8 configurations) and B = 1024 warm; each figure
-the best of 5 passes, in ms per solve. Printed: every round, then the best over rounds and the
-ratio old / new. A change's speed-up is measured as a ratio in one run, never against a figure
-from another day.
+(``solve(...).jacobians(compliance=False)``, 8 configurations), the kernel's tip partials
+alone (``Kernel.tip_partials`` on a solve's layout, B = 1, where both trees have them) and
+B = 1024 warm; each figure the best of 5 passes, in ms per solve (per call). Printed: every
+round, then the best over rounds and the ratio old / new. A change's speed-up is measured as a
+ratio in one run, never against a figure from another day.
 """
 
 from __future__ import annotations
@@ -64,8 +65,23 @@ def probe() -> dict:
         def warm_b():
             torchpvs.solve(sc, insertion=ins_b, rotation=rot_b, initial=prev_b, options=opts)
 
-        for key, fn, count in (("B1 warm", warm, n), ("B1 cold", cold, n),
-                               ("control step", control, 8), ("B1024 warm", warm_b, 1024)):
+        cases = [("B1 warm", warm, n), ("B1 cold", cold, n), ("control step", control, 8),
+                 ("B1024 warm", warm_b, 1024)]
+        from torchpvs.kernel import KERNELS
+        eq = prev[0]
+        ctx, info = eq.context, eq.context.implicit
+        kernel = KERNELS[ctx.options.kernel]
+        if hasattr(kernel, "tip_partials"):       # trees before the seam field lack it
+            lay = ctx.plan.reused_layout(ctx.tubes, ctx.insertion, ctx.rotation, info.loaded,
+                                         info.disc)
+            args = (eq.q, ctx.tubes, ctx.insertion, ctx.rotation, info.loaded, info.tab,
+                    info.disc, lay)
+
+            def tip_partials():
+                for _ in range(8):
+                    kernel.tip_partials(*args)
+            cases.append(("tip partials", tip_partials, 8))
+        for key, fn, count in cases:
             fn()
             best = math.inf
             for _ in range(5):
@@ -102,6 +118,8 @@ def main() -> None:
                 best[tag][k] = min(v, best[tag].get(k, math.inf))
     print(f"\nms per solve, best of {args.rounds} rounds: old / new (old/new)")
     for k in best["old"]:
+        if k not in best["new"]:
+            continue
         o, n = best["old"][k], best["new"][k]
         print(f"  {k:<26} {o:8.3f} / {n:8.3f}  ({o / n:.2f}x)")
 

@@ -436,6 +436,38 @@ def test_the_actuator_stiffness_is_the_same_on_both_kernels():
                                    atol=1e-9 * float(Ke.abs().max()))
 
 
+@pytest.mark.parametrize("angle", [0.0, 1e-7, 0.05, 0.3162, 0.3163, 1.0, 3.0])
+def test_the_se3_right_jacobian_is_the_derivative_of_the_matrix_exponential(angle):
+    """``compiled.se3_right_jacobian`` (the tip partials' chain): ``exp(om)^-1 d exp(om + t
+    e_a)/dt = [J_r e_a]^`` against forward-mode autograd of ``torch.linalg.matrix_exp`` of the
+    4 x 4 twist matrix (an independent exponential), on both sides of its series switch
+    (``|omega|^2 = 0.1``) and at zero rotation."""
+    rng = np.random.default_rng(int(angle * 1e4))
+    w = rng.normal(size=3)
+    w *= angle / np.linalg.norm(w)
+    om = np.concatenate([w, rng.normal(size=3)])
+
+    def hat(x):
+        Z = torch.zeros(4, 4, dtype=torch.float64)
+        Z[0, 1], Z[0, 2], Z[1, 2] = -x[2], x[1], -x[0]
+        Z[1, 0], Z[2, 0], Z[2, 1] = x[2], -x[1], x[0]
+        Z[:3, 3] = x[3:]
+        return Z
+
+    x = torch.tensor(om)
+    E = torch.linalg.matrix_exp(hat(x))
+    dE = torch.func.jacfwd(lambda y: torch.linalg.matrix_exp(hat(y)))(x)     # (4, 4, 6)
+    M = torch.linalg.solve(E, dE.permute(2, 0, 1))                             # (6, 4, 4)
+    ref_w = torch.stack([M[:, 2, 1], M[:, 0, 2], M[:, 1, 0]], 0).numpy()      # columns a
+    ref_v = M[:, :3, 3].T.numpy()
+    Jw, Q = np.empty((3, 3)), np.empty((3, 3))
+    compiled.se3_right_jacobian(om, 1e-6, Jw, Q)
+    got_w = np.concatenate([Jw, np.zeros((3, 3))], 1)
+    got_v = np.concatenate([Q, Jw], 1)
+    np.testing.assert_allclose(got_w, ref_w, rtol=0, atol=1e-13)
+    np.testing.assert_allclose(got_v, ref_v, rtol=0, atol=1e-13 * (1 + np.abs(om).max()))
+
+
 @pytest.mark.parametrize("dtype", [torch.float64, torch.float32])
 def test_the_compiled_tip_partials_are_the_autograd_ones(dtype):
     """The tip twist's partials ``P_q, P_D, P_alpha`` (compiled: a complex step of the tip pose

@@ -1639,27 +1639,78 @@ def _tip_parallel(q, qmask, D, L, Ls, coef, tau, psi0, start, h, present, curved
 
 
 @_jit
-def exp_derivatives(om, small, E, dE):
-    """``E = exp(om)`` (4 x 4, real ``om (6,)``) and ``dE[a] = dE/dom_a`` ``(6, 4, 4)``, by a
-    complex step of :func:`exp_right_any` per twist component (exact to rounding)."""
-    eps = 1e-20
-    omc = np.empty(6, dtype=np.complex128)
-    g = np.empty((4, 4), dtype=np.complex128)
-    Ec = np.empty((4, 4), dtype=np.complex128)
-    tmp = np.empty((4, 4), dtype=np.complex128)
-    for a in range(6):
-        for b in range(6):
-            omc[b] = om[b]
-        omc[a] += 1j * eps
-        g[:, :] = 0.0
-        for i in range(4):
-            g[i, i] = 1.0
-        exp_right_any(g, omc, small, Ec, tmp)
-        for i in range(4):
-            for j in range(4):
-                dE[a, i, j] = g[i, j].imag / eps
-                if a == 0:
-                    E[i, j] = g[i, j].real
+def hat3(x, o, M):
+    """``M <- [x]x`` of the 3-vector ``x[o:o+3]``."""
+    M[0, 0] = 0.0
+    M[0, 1] = -x[o + 2]
+    M[0, 2] = x[o + 1]
+    M[1, 0] = x[o + 2]
+    M[1, 1] = 0.0
+    M[1, 2] = -x[o]
+    M[2, 0] = -x[o + 1]
+    M[2, 1] = x[o]
+    M[2, 2] = 0.0
+
+
+@_jit
+def mat3(A, B, out):
+    """out = A @ B for 3 x 3 arrays (out must not alias A or B)."""
+    for i in range(3):
+        for j in range(3):
+            out[i, j] = A[i, 0] * B[0, j] + A[i, 1] * B[1, j] + A[i, 2] * B[2, j]
+
+
+@_jit
+def se3_right_jacobian(om, small, Jw, Q):
+    """The right Jacobian of the SE(3) exponential at ``om = (omega, v)``: ``d exp(om + t e_a)
+    / dt = exp(om) [J_r e_a]^``, with ``J_r = [[Jw, 0], [Q, Jw]]`` (rows and columns
+    ``(omega, v)``), into ``Jw (3, 3)`` and ``Q (3, 3)``. ``J_r(om) = J_l(-om)``, the left
+    Jacobian of Barfoot and Furgale ("Associating uncertainty with three-dimensional poses",
+    T-RO 2014, eqs. 100-102): ``J_l = I + b W + c W^2`` and
+    ``Q_l = v^/2 + c (W v^ + v^ W + W v^ W) - d (W^2 v^ + v^ W^2 - 3 W v^ W)
+    - e (W v^ W^2 + W^2 v^ W)`` with ``W = [omega]x``, ``b, c`` of
+    :func:`se3_coefficients`, ``d = (1 - t^2/2 - cos t) / t^4``,
+    ``e = (d - 3 (t - sin t - t^3/6) / t^5) / 2`` (series below ``t^2 = 0.1``)."""
+    m = np.empty(6)
+    for i in range(6):
+        m[i] = -om[i]
+    t2 = m[0] * m[0] + m[1] * m[1] + m[2] * m[2]
+    _, b, c = se3_coefficients(t2, small)
+    if t2 < 0.1:
+        d = (-1.0 / 24 + t2 / 720 - t2 * t2 / 40320 + t2 ** 3 / 3628800
+             - t2 ** 4 / 479001600)
+        f = (-1.0 / 120 + t2 / 5040 - t2 * t2 / 362880 + t2 ** 3 / 39916800
+             - t2 ** 4 / 6227020800)
+    else:
+        d = (b - 0.5) / t2
+        f = (c - 1.0 / 6) / t2
+    e = 0.5 * (d - 3.0 * f)
+    W = np.empty((3, 3))
+    V = np.empty((3, 3))
+    WV = np.empty((3, 3))
+    VW = np.empty((3, 3))
+    WVW = np.empty((3, 3))
+    WW = np.empty((3, 3))
+    WWV = np.empty((3, 3))
+    VWW = np.empty((3, 3))
+    X = np.empty((3, 3))
+    Y = np.empty((3, 3))
+    hat3(m, 0, W)
+    hat3(m, 3, V)
+    mat3(W, V, WV)
+    mat3(V, W, VW)
+    mat3(WV, W, WVW)
+    mat3(W, W, WW)
+    mat3(W, WV, WWV)
+    mat3(VW, W, VWW)
+    mat3(WVW, W, X)          # W v^ W^2
+    mat3(W, WVW, Y)          # W^2 v^ W
+    for i in range(3):
+        for j in range(3):
+            Jw[i, j] = (1.0 if i == j else 0.0) + b * W[i, j] + c * WW[i, j]
+            Q[i, j] = (0.5 * V[i, j] + c * (WV[i, j] + VW[i, j] + WVW[i, j])
+                       - d * (WWV[i, j] + VWW[i, j] - 3.0 * WVW[i, j])
+                       - e * (X[i, j] + Y[i, j]))
 
 
 @_jit
@@ -1762,19 +1813,25 @@ def tip_partials_q_one(q, qmask, D, coef, tau, psi0, start, h, present, curved, 
             psi[j] += (hk * q[f] * qmask[f] + (horner_integral(coef, j, sk - tau[j] + hk)
                                                - Z0[j]) * curved[k, j] * presc[k])
             dpsi[j, f] += hk * qmask[f]
-    # the chain: frames before each step, the exponentials and their derivatives
+    # the chain: frames before each step and the exponentials. An exponential's derivative in
+    # its twist is exp(Om) [J_r e_a]^ (se3_right_jacobian): with (w_a, v_a) = J_r e_a the tip
+    # moves by R (w_a x r + v_a) and turns by R w_a, R the frame after the step
     Pprev = np.empty((K, 4, 4))
     E = np.empty((K, 4, 4))
-    dE = np.empty((K, 6, 4, 4))
+    Es = np.empty((4, 4))
+    tmp = np.empty((4, 4))
     P = np.eye(4)
     for k in range(K):
         Pprev[k] = P
-        exp_derivatives(Om[k], 1e-6, E[k], dE[k])
+        E[k] = np.eye(4)
+        exp_right_any(E[k], Om[k], 1e-6, Es, tmp)
         mat4(Pprev[k], E[k], P)
     Pq[:, :] = 0.0
     Pk = np.empty((4, 4))
-    r = np.empty(4)
+    r = np.empty(3)
     z = np.empty(6)
+    Jw = np.empty((3, 3))
+    Qv = np.empty((3, 3))
     for k in range(K):
         mat4(Pprev[k], E[k], Pk)
         for i in range(3):       # the tip in frame k
@@ -1782,25 +1839,20 @@ def tip_partials_q_one(q, qmask, D, coef, tau, psi0, start, h, present, curved, 
             for l in range(3):
                 acc += Pk[l, i] * (P[l, 3] - Pk[l, 3])
             r[i] = acc
-        r[3] = 1.0
+        se3_right_jacobian(Om[k], 1e-6, Jw, Qv)
         for a in range(6):
-            y0 = 0.0
-            y1 = 0.0
-            y2 = 0.0
-            o0 = 0.0
-            o1 = 0.0
-            o2 = 0.0
-            for l in range(4):
-                y0 += dE[k, a, 0, l] * r[l]
-                y1 += dE[k, a, 1, l] * r[l]
-                y2 += dE[k, a, 2, l] * r[l]
-            for l in range(3):       # vee(dR R^T), R the step's rotation
-                o0 += 0.5 * (dE[k, a, 2, l] * E[k, 1, l] - dE[k, a, 1, l] * E[k, 2, l])
-                o1 += 0.5 * (dE[k, a, 0, l] * E[k, 2, l] - dE[k, a, 2, l] * E[k, 0, l])
-                o2 += 0.5 * (dE[k, a, 1, l] * E[k, 0, l] - dE[k, a, 0, l] * E[k, 1, l])
+            if a < 3:
+                w0, w1, w2 = Jw[0, a], Jw[1, a], Jw[2, a]
+                v0, v1, v2 = Qv[0, a], Qv[1, a], Qv[2, a]
+            else:
+                w0, w1, w2 = 0.0, 0.0, 0.0
+                v0, v1, v2 = Jw[0, a - 3], Jw[1, a - 3], Jw[2, a - 3]
+            y0 = w1 * r[2] - w2 * r[1] + v0
+            y1 = w2 * r[0] - w0 * r[2] + v1
+            y2 = w0 * r[1] - w1 * r[0] + v2
             for i in range(3):
-                z[i] = Pprev[k, i, 0] * y0 + Pprev[k, i, 1] * y1 + Pprev[k, i, 2] * y2
-                z[3 + i] = Pprev[k, i, 0] * o0 + Pprev[k, i, 1] * o1 + Pprev[k, i, 2] * o2
+                z[i] = Pk[i, 0] * y0 + Pk[i, 1] * y1 + Pk[i, 2] * y2
+                z[3 + i] = Pk[i, 0] * w0 + Pk[i, 1] * w1 + Pk[i, 2] * w2
             for c in range(nq):
                 d = dOm[k, a, c]
                 if d != 0.0:
