@@ -436,6 +436,72 @@ def test_the_actuator_stiffness_is_the_same_on_both_kernels():
                                    atol=1e-9 * float(Ke.abs().max()))
 
 
+def test_the_compiled_load_rows_are_the_autograd_ones():
+    """``compiled.load_rows`` (a fourth-order central difference of the exact tip partials at
+    layouts moved along their slopes) against the double backward of ``-F . p`` through a
+    fresh layout and ``mechanics.tip_pose``: every row of ``U_xq`` and ``U_xx`` along the
+    insertions and the rotations, at loaded Fig. 3 equilibria off and at the kink of its
+    default insertion, and on a random robot, to 1e-10 of the largest entry (measured about
+    3e-13)."""
+    from torchpvs.mechanics import tip_pose
+    from torchpvs.sections import build_layout
+    cases = [(fig3(), [0.05, 0.15], [0.3, -0.1, 0.05]),
+             (fig3(), [D1_FIG3, 0.2085], [0.0, 0.2, -0.3]),
+             (nested_scene(3), None, [0.1, 0.2, 0.1])]
+    for scene, D0, F0 in cases:
+        kw = {} if D0 is None else {"insertion": torch.tensor([D0], dtype=DT)}
+        F = torch.tensor([F0], dtype=DT)
+        eq = tp.solve(scene, tip_force=F, **kw)
+        ctx, info = eq.context, eq.context.implicit
+        D, A, q = ctx.insertion.detach(), ctx.rotation.detach() + 0.4, eq.q.detach()
+        N = D.shape[1]
+        zero = torch.zeros(1, 3, dtype=DT)
+        with torch.no_grad():
+            lay = build_layout(ctx.tubes, D, A, zero, zero, info.loaded, info.disc)
+        Gq, XD, XA = compiled.load_rows(q, lay, ctx.tubes, info.tab, F, rotations=True)
+        qr, Dr, Ar = (t.clone().requires_grad_(True) for t in (q, D, A))
+        p = tip_pose(qr, build_layout(ctx.tubes, Dr, Ar, zero, zero, info.loaded, info.disc),
+                     info.tab)[0]
+        gD, gA = torch.autograd.grad(-(F * p).sum(), (Dr, Ar), create_graph=True)
+        ref, got = [], []
+        for d in range(2 * N):
+            out = gD[0, d] if d < N else gA[0, d - N]
+            rq, rD, rA = torch.autograd.grad(out, (qr, Dr, Ar), retain_graph=True)
+            ref.append(torch.cat([rq[0] * info.qmask[0], rD[0], rA[0]]))
+            got.append(torch.cat([Gq[0, d] * info.qmask[0], XD[0, d], XA[0, d]]))
+        ref, got = torch.stack(ref), torch.stack(got)
+        np.testing.assert_allclose(got.numpy(), ref.numpy(), rtol=0,
+                                   atol=1e-10 * float(ref.abs().max()))
+
+
+def test_the_loaded_actuator_stiffness_is_the_same_on_both_kernels(monkeypatch):
+    """``actuator_stiffness`` and the control Jacobians of equilibria under a dead tip force
+    (the robust environment's plants) on the eager kernel (a double backward through the
+    loaded potential) and the compiled one (the elastic rows' complex step plus the load's
+    rows), the kink sides and a base at the orifice (every row from the kernel) included,
+    to 1e-9 relative."""
+    from torchpvs.jacobians import actuator_stiffness
+    calls = []
+    real = compiled.load_rows
+    monkeypatch.setattr(compiled, "load_rows",
+                        lambda *a, **k: calls.append(a[4].shape[0]) or real(*a, **k))
+    rng = np.random.default_rng(5)
+    rot = torch.tensor(rng.uniform(-3, 3, (4, 2)), dtype=DT)
+    F = torch.tensor(rng.normal(size=(4, 3)) * 0.3, dtype=DT)
+    for scene, D in [(fig3(), [0.05, 0.15]), (fig3(), [0.0, 0.15]), *_kink_scenes()[::3]]:
+        eqs = both(scene, insertion=torch.tensor(D, dtype=DT).expand(4, 2), rotation=rot,
+                   tip_force=F)
+        assert all(bool(e.context.implicit.with_load) for e in eqs)
+        calls.clear()
+        Ke, Kc = (actuator_stiffness(e) for e in eqs)
+        assert calls, "the compiled stiffness took no load rows"
+        np.testing.assert_allclose(Kc.numpy(), Ke.numpy(), rtol=1e-9,
+                                   atol=1e-9 * float(Ke.abs().max()))
+    Je, Jc = (e.jacobians(compliance=False) for e in eqs)
+    np.testing.assert_allclose(Jc.tip_jacobian.numpy(), Je.tip_jacobian.numpy(), rtol=1e-9,
+                               atol=1e-9 * float(Je.tip_jacobian.abs().max()))
+
+
 @pytest.mark.parametrize("angle", [0.0, 1e-7, 0.05, 0.3162, 0.3163, 1.0, 3.0])
 def test_the_se3_right_jacobian_is_the_derivative_of_the_matrix_exponential(angle):
     """``compiled.se3_right_jacobian`` (the tip partials' chain): ``exp(om)^-1 d exp(om + t

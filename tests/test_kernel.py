@@ -68,9 +68,10 @@ def test_registry_holds_kernels_of_callables_accepted_by_the_options():
         assert all(callable(getattr(kern, f)) for f in Kernel._fields), name
         assert tp.SolverOptions(kernel=name).kernel == name
     # The compiled kernel replaces the Newton solve, step, new-section step, pose, force
-    # partials, the stiffness's actuator rows and the tip partials, and reuses the rest.
+    # partials, the stiffness's actuator rows, the tip partials and the tip load's rows (which
+    # the eager kernel leaves to autograd), and reuses the rest.
     replaced = ("solve", "step", "section_step", "pose", "partials", "actuation_rows",
-                "tip_partials")
+                "tip_partials", "load_rows")
     for f in Kernel._fields:
         same = getattr(COMPILED, f) is getattr(EAGER, f)
         assert same == (f not in replaced), f

@@ -304,6 +304,37 @@ def tip_partials(q: torch.Tensor, lay, tubes, tab) -> tuple | None:
     return (t(Pq).to(q.dtype), t(Px[:, :, :N]).to(q.dtype), t(Px[:, :, N:]).to(q.dtype))
 
 
+def load_rows(q: torch.Tensor, lay, tubes, tab, force: torch.Tensor,
+              rotations: bool = False) -> tuple | None:
+    """Rows of a dead tip force's potential ``-F . p`` at fixed ``q (B, nq)`` on the layout
+    ``lay`` (``force (B, 3)`` [N], base frame): ``(U_xq (B, m, nq), U_xD (B, m, N), U_xalpha
+    (B, m, N))`` for ``x`` the insertions (``m = N``) or, with ``rotations``, the insertions
+    then the rotations — what :func:`stiffness_rows` gives for the elastic energy, here for the
+    load's work (:func:`load_rows_one`: a fourth-order central difference of the exact tip
+    partials at layouts moved along the slopes, steps ``5e-4`` of the longest tube and
+    ``1e-4`` rad; about 1e-11 relative on the Fig. 3 robot). None where the compiled kernel
+    does not apply. Computed in float64, returned in ``q``'s dtype."""
+    args = _layout_arrays(q, lay, tubes, tab)
+    if args is None:
+        return None
+    (qmask, D, L, Ls, _, _, coef, tau, psi0, start, h, present, curved, _, presc,
+     *_) = (x.astype(np.float64, copy=False) for x in args)
+    qa = _numpy(q, torch.float64)
+    B, nq = qa.shape
+    N = D.shape[1]
+    m = 2 * N if rotations else N
+    Gq = np.empty((B, m, nq))
+    X = np.empty((B, m, 2 * N))
+    f64 = torch.float64
+    dD = 5e-4 * float(L.max()) if L.size else 1e-4
+    run = _load_rows_parallel if _set_threads(B) else _load_rows_serial
+    run(qa, _numpy(force.expand(B, 3), f64), qmask, D, L, Ls, coef, tau, psi0, start, h,
+        present, curved, presc, _numpy(lay.tip_tube.expand(B, N), f64), _numpy(tab.xm, f64),
+        _numpy(tab.phi_m, f64), _numpy(tab.Q_m, f64), dD, 1e-4, Gq, X)
+    t = torch.from_numpy
+    return (t(Gq).to(q.dtype), t(X[:, :, :N]).to(q.dtype), t(X[:, :, N:]).to(q.dtype))
+
+
 def pose(q: torch.Tensor, lay, tab, const) -> tuple | None:
     """:func:`torchpvs.mechanics.tip_pose`'s contract with the pose constants ``const`` (``q
     (..., B, nq)``), compiled: ``(tip (..., B, 3), R (..., B, 3, 3), psi_tip (..., B, N))``;
@@ -1580,35 +1611,44 @@ def tip_partials_one(q, qmask, D, L, Ls, coef, tau, psi0, start, h, present, cur
                      tip_tube, xm, phi, Qb, Pq, Px):
     """One element's tip partials at fixed ``q``: ``Pq (6, nq)`` per coordinate (zero on the
     inactive ones; through the Magnus chain, :func:`tip_partials_q_one`) and ``Px (6, 2N)`` per
-    insertion then rotation, by a complex step of :func:`tip_twist_core` per actuator (exact to
-    rounding: no difference is taken); rows the tip position [m] and the spatial rotation
-    ``vee(skew(dR R^T))`` [rad]."""
+    insertion then rotation (:func:`tip_actuator_partials`); rows the tip position [m] and the
+    spatial rotation ``vee(skew(dR R^T))`` [rad]."""
+    N = D.shape[0]
+    zero = np.zeros(N)
+    tip_partials_q_one(q, qmask, D, coef, tau, psi0, start, h, present, curved, presc, tip_tube,
+                       xm, phi, Qb, Pq)
+    tip_actuator_partials(q, qmask, D, L, Ls, coef, tau, psi0, start, h, present, curved,
+                          presc, tip_tube, xm, phi, Qb, zero, zero, Px)
+
+
+@_jit
+def tip_actuator_partials(q, qmask, D, L, Ls, coef, tau, psi0, start, h, present, curved,
+                          presc, tip_tube, xm, phi, Qb, Ds, As, Px):
+    """``Px (6, 2N)``: the tip twist's partials per insertion then rotation at the insertions
+    ``D + Ds`` and rotations moved by ``As`` (real shifts along the layout's slopes, its
+    sections and masks unchanged; zero: the layout's own), by a complex step of
+    :func:`tip_twist_core` per actuator (exact to rounding: no difference is taken)."""
     N = D.shape[0]
     eps = 1e-20
     Dc = np.empty(N, dtype=np.complex128)
-    dA = np.zeros(N, dtype=np.complex128)
+    dA = np.empty(N, dtype=np.complex128)
     tip = np.empty(3, dtype=np.complex128)
     R = np.empty((3, 3), dtype=np.complex128)
-    for j in range(N):
-        Dc[j] = D[j]
-    tip_partials_q_one(q, qmask, D, coef, tau, psi0, start, h, present, curved, presc, tip_tube,
-                       xm, phi, Qb, Pq)
+    W = np.empty((3, 3))
     for d in range(2 * N):          # the insertions, then the rotations
+        for j in range(N):
+            Dc[j] = D[j] + Ds[j]
+            dA[j] = As[j]
         if d < N:
-            Dc[d] = D[d] + 1j * eps
+            Dc[d] += 1j * eps
         else:
-            dA[d - N] = 1j * eps
+            dA[d - N] += 1j * eps
         tip_twist_core(q, Dc, dA, qmask, D, L, Ls, coef, tau, psi0, start, h, present, curved,
                        presc, tip_tube, xm, phi, Qb, 1e-6, tip, R)
         col = Px[:, d]
-        if d < N:
-            Dc[d] = D[d]
-        else:
-            dA[d - N] = 0.0
         for i in range(3):
             col[i] = tip[i].imag / eps
         # spatial rotation: vee of the skew part of dR R^T
-        W = np.empty((3, 3))
         for i in range(3):
             for k in range(3):
                 acc = 0.0
@@ -1618,6 +1658,103 @@ def tip_partials_one(q, qmask, D, L, Ls, coef, tau, psi0, start, h, present, cur
         col[3] = 0.5 * (W[2, 1] - W[1, 2])
         col[4] = 0.5 * (W[0, 2] - W[2, 0])
         col[5] = 0.5 * (W[1, 0] - W[0, 1])
+
+
+@_jit
+def moved_layout(D, L, Ls, coef, tau, psi0, start, h, Ds, As, D2, tau2, psi02, start2, h2):
+    """The layout's fields that :func:`tip_partials_q_one` reads, at the insertions ``D + Ds``
+    and the rotations moved by ``As`` (real shifts along the slopes of :func:`cut_slopes` and
+    :func:`guide_curved`, the sections and masks unchanged, as :func:`tip_twist_core` moves
+    them), into ``D2, tau2, psi02 (N,)`` and ``start2, h2 (S,)``."""
+    N = D.shape[0]
+    S = h.shape[0]
+    dh, dstart = cut_slopes(D, L, Ls, S)
+    Dc = np.empty(N)
+    for j in range(N):
+        Dc[j] = D[j] + Ds[j]
+    for j in range(N):
+        tg, tg_r, _ = guide_curved(D, L, Ls, Dc, j)
+        psi02[j] = (psi0[j] + As[j] + horner_integral(coef, j, tg)
+                    - horner_integral(coef, j, tg_r))
+        tau2[j] = tau[j] - Ds[j]
+        D2[j] = Dc[j]
+    for k in range(S):
+        start2[k], h2[k] = section_moved(start, h, dstart, dh, k, Dc, D)
+
+
+#: The fourth-order central difference of :func:`load_rows_one`: offsets and weights (/ 12).
+_STENCIL = np.array([-2.0, -1.0, 1.0, 2.0])
+_WEIGHTS = np.array([1.0, -8.0, 8.0, -1.0])
+
+
+@_jit
+def load_rows_one(q, F, qmask, D, L, Ls, coef, tau, psi0, start, h, present, curved, presc,
+                  tip_tube, xm, phi, Qb, dD, dA, Gq, X):
+    """One element's rows of a dead tip force's potential ``-F . p`` at fixed ``q`` along
+    ``m = Gq.shape[0]`` directions ``D_1..D_N`` then (``m = 2N``) ``alpha_1..alpha_N``:
+    ``Gq[d] (nq,) = -d(F . P_q)/dx_d`` and ``X[d] (2N,) = -d(F . (P_D, P_alpha))/dx_d`` (the
+    rows of ``U_xq`` and ``U_xx``; zero on inactive coordinates). Each is a fourth-order central
+    difference, steps ``dD`` [m] and ``dA`` [rad], of the exact partials (the Magnus chain and
+    the complex step) at layouts moved along the slopes: the difference runs on the analytic
+    continuation of the layout's structure at ``D``, so it is the one-sided derivative that
+    the structure stands for even where a step crosses a cut (a kink's side)."""
+    N = D.shape[0]
+    nq = q.shape[0]
+    S = h.shape[0]
+    Ds = np.zeros(N)
+    As = np.zeros(N)
+    D2 = np.empty(N)
+    tau2 = np.empty(N)
+    psi02 = np.empty(N)
+    start2 = np.empty(S)
+    h2 = np.empty(S)
+    Pq = np.empty((6, nq))
+    Px = np.empty((6, 2 * N))
+    F0, F1, F2 = F[0], F[1], F[2]
+    if F0 == 0.0 and F1 == 0.0 and F2 == 0.0:     # an unloaded element of a loaded batch
+        Gq[:, :] = 0.0
+        X[:, :] = 0.0
+        return
+    for d in range(Gq.shape[0]):
+        Gq[d, :] = 0.0
+        X[d, :] = 0.0
+        step = dD if d < N else dA
+        for s in range(4):
+            Ds[:] = 0.0
+            As[:] = 0.0
+            if d < N:
+                Ds[d] = _STENCIL[s] * step
+            else:
+                As[d - N] = _STENCIL[s] * step
+            moved_layout(D, L, Ls, coef, tau, psi0, start, h, Ds, As, D2, tau2, psi02, start2,
+                         h2)
+            tip_partials_q_one(q, qmask, D2, coef, tau2, psi02, start2, h2, present, curved,
+                               presc, tip_tube, xm, phi, Qb, Pq)
+            tip_actuator_partials(q, qmask, D, L, Ls, coef, tau, psi0, start, h, present,
+                                  curved, presc, tip_tube, xm, phi, Qb, Ds, As, Px)
+            c = -_WEIGHTS[s] / (12.0 * step)
+            for col in range(nq):
+                Gq[d, col] += c * (F0 * Pq[0, col] + F1 * Pq[1, col] + F2 * Pq[2, col])
+            for col in range(2 * N):
+                X[d, col] += c * (F0 * Px[0, col] + F1 * Px[1, col] + F2 * Px[2, col])
+
+
+@cached_jit(nogil=True)
+def _load_rows_serial(q, F, qmask, D, L, Ls, coef, tau, psi0, start, h, present, curved, presc,
+                      tip_tube, xm, phi, Qb, dD, dA, Gq, X):
+    for b in range(q.shape[0]):
+        load_rows_one(q[b], F[b], qmask[b], D[b], L[b], Ls[b], coef[b], tau[b], psi0[b],
+                      start[b], h[b], present[b], curved[b], presc[b], tip_tube[b], xm, phi, Qb,
+                      dD, dA, Gq[b], X[b])
+
+
+@cached_jit(nogil=True, parallel=True)
+def _load_rows_parallel(q, F, qmask, D, L, Ls, coef, tau, psi0, start, h, present, curved,
+                        presc, tip_tube, xm, phi, Qb, dD, dA, Gq, X):
+    for b in prange(q.shape[0]):
+        load_rows_one(q[b], F[b], qmask[b], D[b], L[b], Ls[b], coef[b], tau[b], psi0[b],
+                      start[b], h[b], present[b], curved[b], presc[b], tip_tube[b], xm, phi, Qb,
+                      dD, dA, Gq[b], X[b])
 
 
 @cached_jit(nogil=True)

@@ -206,10 +206,9 @@ def _schur(eq, rows: torch.Tensor, tip: bool = False, D=None):
     if bool((qmask[:, :N] > 0).all()) and bool((D0 > 0).all()):
         Uxq, Uxx, partials, lay_mask = _rotation_rows_from_hessian(eq, rows, D0, tip,
                                                                    own=D is None)
-    elif not ctx.implicit.with_load:
+    elif (out := _rows_without_graph(eq, rows, D0, D is None, True)) is not None:
         # every row from the kernel (compiled: a complex step per actuator, no graph)
-        lay = _layout_at(eq, rows, D0, D is None)
-        Uxq, UxD, UxA, lay_mask = _kernel_rows(eq, rows, D0, lay, True)
+        Uxq, UxD, UxA, lay_mask, _ = out
         Uxx = torch.cat([UxD, UxA], -1)
     else:
         q, info, (D, A, F, M), tubes = _replicated(eq, m, rows, D)
@@ -350,6 +349,33 @@ def _kernel_rows(eq, rows, D0, layout, rotations: bool):
         info.loaded[rows], info.tab, info.disc, rotations, layout)
 
 
+def _rows_without_graph(eq, rows, D0, own: bool, rotations: bool):
+    """``(U_xq, U_xD, U_xalpha, qmask, layout)`` of batch ``rows`` at insertions ``D0`` from the
+    kernel (:func:`_kernel_rows` on the layout of :func:`_layout_at`, returned for the tip
+    partials to share), plus under a dead tip force the
+    kernel's ``load_rows`` (compiled: a central difference of the exact tip partials); None
+    where the kernel has no load rows (the caller then differentiates the loaded potential
+    twice by autograd)."""
+    ctx = eq.context
+    info = ctx.implicit
+    kernel = KERNELS[ctx.options.kernel]
+    if info.with_load and kernel.load_rows is EAGER.load_rows:
+        return None
+    lay = _layout_at(eq, rows, D0, own)
+    load = None
+    if info.with_load:
+        F = ctx.actuation_and_load[2].detach()[rows]
+        load = kernel.load_rows(eq.q.detach()[rows], tube_rows(ctx.tubes, rows), D0,
+                                ctx.rotation.detach()[rows], info.loaded[rows], info.tab,
+                                info.disc, F, rotations, lay)
+        if load is None:
+            return None
+    Uxq, UxD, UxA, qmask = _kernel_rows(eq, rows, D0, lay, rotations)
+    if load is not None:
+        Uxq, UxD, UxA = Uxq + load[0], UxD + load[1], UxA + load[2]
+    return Uxq, UxD, UxA, qmask, lay
+
+
 def _rotation_rows_from_hessian(eq, rows, D0, tip: bool = False, own: bool = False):
     """``(U_xq (B, 2N, nq), U_xx (B, 2N, 2N), tip partials or None, the layout's qmask
     (B, nq))`` with the insertion rows from the kernel (:func:`_kernel_rows`: the compiled
@@ -369,13 +395,12 @@ def _rotation_rows_from_hessian(eq, rows, D0, tip: bool = False, own: bool = Fal
     B, N = D0.shape
     ctx = eq.context
     kernel = KERNELS[ctx.options.kernel]
-    if not ctx.implicit.with_load and (not tip or kernel.actuation_rows
-                                       is not EAGER.actuation_rows):
-        # the kernel's rows (compiled: a complex step per insertion, no graph); the tip
-        # partials then by their own reverse pass (6 rows), which is cheaper than one pass
-        # through both graphs only when the rows' graph is not needed
-        lay = _layout_at(eq, rows, D0, own)
-        UDq, UDD, UDA, lay_mask = _kernel_rows(eq, rows, D0, lay, False)
+    # the kernel's rows (compiled: a complex step per insertion, no graph); the tip partials
+    # then by their own reverse pass (6 rows), which is cheaper than one pass through both
+    # graphs only when the rows' graph is not needed
+    if (not tip or kernel.actuation_rows is not EAGER.actuation_rows) and (
+            out := _rows_without_graph(eq, rows, D0, own, False)) is not None:
+        UDq, UDD, UDA, lay_mask, lay = out
         partials = _tip_partials(eq, rows, None if own else D0, lay) if tip else None
         return (*_with_rotation_rows(eq, rows, D0, UDq, UDD, UDA), partials, lay_mask)
     m = N + 6 * tip

@@ -41,7 +41,7 @@ from .newton import NewtonResult, Problem, derivatives, newton, scaled_residual
 from .sections import Discretization, Layout, Tables, build_layout, n_coordinates
 
 __all__ = ["COMPILED", "EAGER", "KERNELS", "Kernel", "default_guess", "new_section_step",
-           "newton_step"]
+           "newton_step", "no_load_rows"]
 
 
 class Kernel(NamedTuple):
@@ -82,6 +82,12 @@ class Kernel(NamedTuple):
             (B, 6, nq), P_D (B, 6, N), P_alpha (B, 6, N))``: the tip twist's partials at fixed
             ``q`` (position [m], spatial rotation [rad]; :func:`torchpvs.mechanics.tip_partials`),
             for the closed-form tip Jacobian and compliance (:mod:`torchpvs.jacobians`).
+        load_rows: ``load_rows(q, tubes, D, alpha, loaded, tab, disc, force, rotations,
+            layout) -> (U_xq, U_xD, U_xalpha)`` (shapes of ``actuation_rows``) or None: the
+            same rows of a dead tip force's potential ``-F . p`` (``force (B, 3)`` [N], base
+            frame), which the actuator stiffness adds to ``actuation_rows``' on a loaded layout.
+            None where the kernel has none: the stiffness then takes a loaded robot's rows by
+            one double-backward pass through the loaded potential (the eager reference).
     """
 
     guess: Callable[..., torch.Tensor]
@@ -93,6 +99,13 @@ class Kernel(NamedTuple):
     partials: Callable[..., tuple[torch.Tensor, torch.Tensor]]
     actuation_rows: Callable[..., tuple]
     tip_partials: Callable[..., tuple]
+    load_rows: Callable[..., tuple | None]
+
+
+def no_load_rows(q, tubes, D, alpha, loaded, tab, disc, force, rotations=False, layout=None):
+    """The eager kernel's ``load_rows``: none (the actuator stiffness differentiates the loaded
+    potential twice by autograd instead, :mod:`torchpvs.jacobians`)."""
+    return None
 
 
 def newton_step(q: torch.Tensor, prob: Problem) -> tuple[torch.Tensor, torch.Tensor]:
@@ -204,7 +217,7 @@ def default_guess(lay: Layout, maps: Maps, tab: Tables, disc: Discretization,
 EAGER = Kernel(guess=default_guess, solve=newton, step=newton_step,
                section_step=new_section_step, pose=tip_pose, spd_solve=spd_solve,
                partials=closed_form_partials, actuation_rows=actuation_rows,
-               tip_partials=tip_partials)
+               tip_partials=tip_partials, load_rows=no_load_rows)
 
 
 def _compiled_solve(q, prob, L_char, **kwargs):
@@ -255,6 +268,13 @@ def _compiled_tip_partials(q, tubes, D, alpha, loaded, tab, disc, layout=None):
     return tip_partials(q, tubes, D, alpha, loaded, tab, disc) if out is None else out
 
 
+def _compiled_load_rows(q, tubes, D, alpha, loaded, tab, disc, force, rotations=False,
+                        layout=None):
+    out, _ = _on_layout(compiled.load_rows, q, tubes, D, alpha, loaded, disc, layout, tab,
+                        force.detach(), rotations)
+    return out
+
+
 def _compiled_pose(q, lay, tab, constants):
     out = compiled.pose(q, lay, tab, constants)
     return tip_pose(q, lay, tab, constants) if out is None else out
@@ -269,7 +289,7 @@ def _compiled_pose(q, lay, tab, constants):
 COMPILED = EAGER._replace(solve=_compiled_solve, step=_compiled_step,
                           section_step=_compiled_section_step, pose=_compiled_pose,
                           partials=_compiled_partials, actuation_rows=_compiled_actuation_rows,
-                          tip_partials=_compiled_tip_partials)
+                          tip_partials=_compiled_tip_partials, load_rows=_compiled_load_rows)
 
 #: Kernels by name (``SolverOptions.kernel``).
 KERNELS: dict[str, Kernel] = {"newton": EAGER, "compiled": COMPILED}
