@@ -472,6 +472,13 @@ def test_the_compiled_load_rows_are_the_autograd_ones():
         ref, got = torch.stack(ref), torch.stack(got)
         np.testing.assert_allclose(got.numpy(), ref.numpy(), rtol=0,
                                    atol=1e-10 * float(ref.abs().max()))
+        # float32 inputs: computed in float64, returned in float32
+        lay32 = type(lay)._make(t.float() if t.is_floating_point() else t for t in lay)
+        out32 = compiled.load_rows(q.float(), lay32, ctx.tubes.map(lambda t: t.float()),
+                                   info.disc.tables(torch.float32, q.device), F.float(), True)
+        assert all(t.dtype == torch.float32 for t in out32)
+        np.testing.assert_allclose(out32[0][0].double().numpy(), Gq[0].numpy(), rtol=0,
+                                   atol=1e-5 * float(ref.abs().max()))
 
 
 def test_the_loaded_actuator_stiffness_is_the_same_on_both_kernels(monkeypatch):
