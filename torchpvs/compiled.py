@@ -277,6 +277,21 @@ def stiffness_rows(q: torch.Tensor, lay, tubes, tab, rotations: bool = False) ->
     return t(Gq).to(q.dtype), Xt[:, :, :N].to(q.dtype), UxA.to(q.dtype)
 
 
+def _pose_arrays(q: torch.Tensor, lay, tubes, tab) -> tuple | None:
+    """``(q, arrays)`` in float64 for the tip functions (:func:`tip_partials_one`'s arguments
+    from ``qmask`` to ``Qb``), or None where the compiled kernel does not apply."""
+    args = _layout_arrays(q, lay, tubes, tab)
+    if args is None:
+        return None
+    (qmask, D, L, Ls, _, _, coef, tau, psi0, start, h, present, curved, _, presc,
+     *_) = (x.astype(np.float64, copy=False) for x in args)
+    B, N = D.shape
+    f64 = torch.float64
+    return _numpy(q, f64), (qmask, D, L, Ls, coef, tau, psi0, start, h, present, curved, presc,
+                            _numpy(lay.tip_tube.expand(B, N), f64), _numpy(tab.xm, f64),
+                            _numpy(tab.phi_m, f64), _numpy(tab.Q_m, f64))
+
+
 def tip_partials(q: torch.Tensor, lay, tubes, tab) -> tuple | None:
     """The tip's partials at fixed ``q (B, nq)`` on the layout ``lay`` (the tube rows
     ``tubes``): ``(P_q (B, 6, nq), P_D (B, 6, N), P_alpha (B, 6, N))``, rows the tip position
@@ -285,21 +300,15 @@ def tip_partials(q: torch.Tensor, lay, tubes, tab) -> tuple | None:
     step of the pose per actuator (:func:`tip_partials_one`). None where the compiled kernel
     does not apply (a tensor that requires grad, not CPU). Computed in float64 (complex128),
     returned in ``q``'s dtype."""
-    args = _layout_arrays(q, lay, tubes, tab)
+    args = _pose_arrays(q, lay, tubes, tab)
     if args is None:
         return None
-    (qmask, D, L, Ls, _, _, coef, tau, psi0, start, h, present, curved, _, presc,
-     *_) = (x.astype(np.float64, copy=False) for x in args)
-    qa = _numpy(q, torch.float64)
-    B, nq = qa.shape
-    N = D.shape[1]
+    qa, arrays = args
+    (B, nq), N = qa.shape, lay.D.shape[1]
     Pq = np.empty((B, 6, nq))
     Px = np.empty((B, 6, 2 * N))
     run = _tip_parallel if _set_threads(B) else _tip_serial
-    f64 = torch.float64
-    run(qa, qmask, D, L, Ls, coef, tau, psi0, start, h, present, curved, presc,
-        _numpy(lay.tip_tube.expand(B, N), f64), _numpy(tab.xm, f64), _numpy(tab.phi_m, f64),
-        _numpy(tab.Q_m, f64), Pq, Px)
+    run(qa, *arrays, Pq, Px)
     t = torch.from_numpy
     return (t(Pq).to(q.dtype), t(Px[:, :, :N]).to(q.dtype), t(Px[:, :, N:]).to(q.dtype))
 
@@ -312,25 +321,20 @@ def load_rows(q: torch.Tensor, lay, tubes, tab, force: torch.Tensor,
     then the rotations — what :func:`stiffness_rows` gives for the elastic energy, here for the
     load's work (:func:`load_rows_one`: a fourth-order central difference of the exact tip
     partials at layouts moved along the slopes, steps ``5e-4`` of the longest tube and
-    ``1e-4`` rad; about 1e-11 relative on the Fig. 3 robot). None where the compiled kernel
-    does not apply. Computed in float64, returned in ``q``'s dtype."""
-    args = _layout_arrays(q, lay, tubes, tab)
+    ``1e-4`` rad; about 3e-13 of the largest entry on the Fig. 3 robot). None where the
+    compiled kernel does not apply. Computed in float64, returned in ``q``'s dtype."""
+    args = _pose_arrays(q, lay, tubes, tab)
     if args is None:
         return None
-    (qmask, D, L, Ls, _, _, coef, tau, psi0, start, h, present, curved, _, presc,
-     *_) = (x.astype(np.float64, copy=False) for x in args)
-    qa = _numpy(q, torch.float64)
-    B, nq = qa.shape
-    N = D.shape[1]
+    qa, arrays = args
+    (B, nq), N = qa.shape, lay.D.shape[1]
     m = 2 * N if rotations else N
     Gq = np.empty((B, m, nq))
     X = np.empty((B, m, 2 * N))
-    f64 = torch.float64
+    L = arrays[2]
     dD = 5e-4 * float(L.max()) if L.size else 1e-4
     run = _load_rows_parallel if _set_threads(B) else _load_rows_serial
-    run(qa, _numpy(force.expand(B, 3), f64), qmask, D, L, Ls, coef, tau, psi0, start, h,
-        present, curved, presc, _numpy(lay.tip_tube.expand(B, N), f64), _numpy(tab.xm, f64),
-        _numpy(tab.phi_m, f64), _numpy(tab.Q_m, f64), dD, 1e-4, Gq, X)
+    run(qa, _numpy(force.expand(B, 3), torch.float64), *arrays, dD, 1e-4, Gq, X)
     t = torch.from_numpy
     return (t(Gq).to(q.dtype), t(X[:, :, :N]).to(q.dtype), t(X[:, :, N:]).to(q.dtype))
 
