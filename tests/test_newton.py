@@ -206,8 +206,8 @@ def test_every_per_element_computation_goes_through_the_kernel(monkeypatch):
     computation of the driver through KERNELS[name] -- the cold guess, the Newton solve, the
     single steps of the order estimate, the tip poses, the new-section step of the one-sided
     forces at a kink, the SPD solve of the rotation predictor, the actuator stiffness's
-    Hessian rows and the tip partials of the tip Jacobian -- so a kernel registered
-    with the eager functions wrapped sees each of them called, and returns the eager
+    Hessian rows, the tip load's rows and the tip partials of the tip Jacobian -- so a kernel
+    registered with the eager functions wrapped sees each of them called, and returns the eager
     kernel's results bit for bit. An unknown name is refused."""
     assert isinstance(KERNELS["newton"], tp.kernel.Kernel) and KERNELS["newton"] is EAGER
     calls: dict[str, int] = {}
@@ -242,6 +242,12 @@ def test_every_per_element_computation_goes_through_the_kernel(monkeypatch):
     from torchpvs.jacobians import actuator_stiffness, tip_jacobian
     assert torch.equal(actuator_stiffness(eq), actuator_stiffness(ref))
     assert torch.equal(tip_jacobian(eq), tip_jacobian(ref))
+    # under a dead tip force the stiffness asks the kernel for the load's rows (the eager
+    # kernel has none: its rows then come from autograd, the same bit for bit)
+    F = torch.tensor([[0.1, -0.2, 0.05]], dtype=DT)
+    eqF, refF = (tp.solve(scene, tip_force=F, options=tp.SolverOptions(kernel=k))
+                 for k in ("spy", "newton"))
+    assert torch.equal(actuator_stiffness(eqF), actuator_stiffness(refF))
     assert set(calls) == set(EAGER._fields), calls
     with pytest.raises(ValueError, match="options.kernel"):
         tp.SolverOptions(kernel="no-such-kernel")
