@@ -56,7 +56,8 @@ def widen_state_dict(src: dict[str, torch.Tensor], dst: dict[str, torch.Tensor],
                          f"(only in source: {sorted(set(src) - set(dst))[:4]}, only in target: "
                          f"{sorted(set(dst) - set(src))[:4]}); they must share depth and heads")
     out = {k: v.detach().clone() for k, v in src.items()}
-    maps: dict[str, torch.Tensor] = {}   # critic chain -> its hidden layers' unit maps
+    # critic chain -> its hidden layers' unit maps and copy noise (the target reuses both)
+    maps: dict[str, list] = {}
     for hidden, heads in _chains({k: v.shape for k, v in src.items()}):
         key = hidden[0].replace("critic_target.", "critic.")
         reuse = key in maps
@@ -69,13 +70,15 @@ def widen_state_dict(src: dict[str, torch.Tensor], dst: dict[str, torch.Tensor],
                                  "only widening preserves the function")
             if not reuse:
                 extra = torch.randint(n, (m - n,), generator=generator)
-                layer_maps.append(torch.cat([torch.arange(n), extra]))
-            g = layer_maps[i]
-            W, b = W[g].clone(), b[g].clone()
-            if noise > 0 and m > n:
                 s = noise * float(src[f"{layer}.weight"].std())
-                W[n:] += s * torch.randn(W[n:].shape, generator=generator, dtype=W.dtype)
-                b[n:] += s * torch.randn(b[n:].shape, generator=generator, dtype=b.dtype)
+                layer_maps.append((torch.cat([torch.arange(n), extra]),
+                                   s * torch.randn((m - n, W.shape[1]), generator=generator,
+                                                   dtype=W.dtype),
+                                   s * torch.randn(m - n, generator=generator, dtype=b.dtype)))
+            g, dW, db = layer_maps[i]
+            W, b = W[g].clone(), b[g].clone()
+            W[n:] += dW
+            b[n:] += db
             out[f"{layer}.weight"], out[f"{layer}.bias"] = W, b
             count = torch.bincount(g, minlength=n).to(W.dtype)[g]
             for nxt in (hidden[i + 1:i + 2] or heads):

@@ -64,14 +64,16 @@ def test_widening_keeps_the_function_exactly_without_noise(algo):
 
 def test_a_target_critic_keeps_its_critics_unit_mapping():
     """Polyak averaging mixes critic and target unit by unit: a target equal to its critic
-    stays equal after widening (independent copies would pair different units)."""
+    stays equal after widening, noise included (independent copies would pair different units
+    and differently perturbed copies)."""
     src, dst, _ = _policies([16, 16], [48, 40])
     src.critic_target.load_state_dict(src.critic.state_dict())
-    wide = widen_state_dict(src.state_dict(), dst.state_dict(), noise=0.0,
-                            generator=torch.Generator().manual_seed(3))
-    for k, v in wide.items():
-        if k.startswith("critic."):
-            assert torch.equal(v, wide["critic_target." + k[len("critic."):]]), k
+    for noise in (0.0, 0.01):       # the copies' noise is the critic's too
+        wide = widen_state_dict(src.state_dict(), dst.state_dict(), noise=noise,
+                                generator=torch.Generator().manual_seed(3))
+        for k, v in wide.items():
+            if k.startswith("critic."):
+                assert torch.equal(v, wide["critic_target." + k[len("critic."):]]), (noise, k)
 
 
 def test_noise_separates_the_copies_but_stays_close_to_the_function():
