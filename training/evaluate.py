@@ -31,7 +31,8 @@ from pathlib import Path
 import numpy as np
 import yaml
 
-__all__ = ["rollout", "summarize", "load_policy", "policy_meta", "markdown_table", "main"]
+__all__ = ["rollout", "summarize", "load_policy", "policy_meta", "policy_env",
+           "markdown_table", "main"]
 
 TOLERANCES = (1e-3, 2e-3, 5e-3)
 
@@ -373,6 +374,31 @@ def policy_meta(path: str | Path) -> tuple[Path, dict]:
                   "vecnormalize": stats[0] if stats else None}
 
 
+def policy_env(path: str | Path | None, batch: int, *, robot: str = "fig3_two_tube",
+               env_id: str | None = None, extra: dict | None = None):
+    """``(venv, env id)``: the :class:`envs.CTRReachVecEnv` of ``batch`` robots that the
+    policy at ``path`` is evaluated on (``None``: a baseline). ``env_id`` defaults to the
+    policy's training env (``torchpvs/CTRReachForce-v0`` for a baseline); of its training env
+    kwargs only those that shape the policy's action and observation are kept
+    (:data:`TASK_NOT_POLICY` are the task's, left at their defaults), then ``extra`` is merged
+    last. Raises ``ValueError`` if the policy was trained on another robot."""
+    import envs
+
+    kwargs = {}
+    env = env_id or "torchpvs/CTRReachForce-v0"
+    if path is not None:
+        _, meta = policy_meta(path)
+        env = env_id or meta["env_id"] or env
+        kwargs = {k: v for k, v in meta["env_kwargs"].items() if k not in TASK_NOT_POLICY}
+        trained_on = kwargs.pop("robot", robot)
+        if trained_on != robot:
+            raise ValueError(f"{path} was trained on robot {trained_on!r}; evaluate it with "
+                             f"--robot {trained_on} (got --robot {robot})")
+    venv = envs.CTRReachVecEnv(batch, robot=robot,
+                               **{**envs.env_kwargs(env), **kwargs, **(extra or {})})
+    return venv, env
+
+
 def load_policy(path: str, venv):
     """A trained model (see :func:`policy_meta`) as a batched, deterministic policy on
     ``venv`` (a :class:`envs.CTRReachVecEnv`), with its residual base and its observation
@@ -464,20 +490,11 @@ def main(argv: list[str] | None = None) -> int:
     if not jobs:
         p.error("give at least one --policy or --baselines")
     for name, path in jobs:
-        env_id, kwargs = args.env or "torchpvs/CTRReachForce-v0", {}
-        if path is not None:
-            try:
-                _, meta = policy_meta(path)
-            except ValueError as e:
-                p.error(str(e))
-            env_id = args.env or meta["env_id"] or env_id
-            kwargs = {k: v for k, v in meta["env_kwargs"].items() if k not in TASK_NOT_POLICY}
-            robot = kwargs.pop("robot", args.robot)
-            if robot != args.robot:
-                p.error(f"{path} was trained on robot {robot!r}; evaluate it with --robot "
-                        f"{robot} (got --robot {args.robot})")
-        venv = envs.CTRReachVecEnv(args.batch, robot=args.robot,
-                                   **{**envs.env_kwargs(env_id), **kwargs, **extra})
+        try:
+            venv, env_id = policy_env(path, args.batch, robot=args.robot, env_id=args.env,
+                                      extra=extra)
+        except ValueError as e:
+            p.error(str(e))
         policy = load_policy(path, venv) if path is not None else CONTROLLERS[name](venv)
         t0 = time.perf_counter()
         res = rollout(policy, venv, args.episodes, seed=args.seed)
