@@ -139,3 +139,17 @@ def test_the_cli_writes_a_soup_and_refuses_missing_metadata(tmp_path, capsys):
     with pytest.raises(SystemExit):
         soup.main(["--out", str(tmp_path / "v.zip"), *map(str, paths)])
     assert "--like" in capsys.readouterr().err
+
+
+def test_the_greedy_cli_scores_on_seeded_goals_and_writes_its_scores(tmp_path):
+    """The CLI's greedy path end to end (two untrained ingredients, one short evaluation
+    each): the soup, its .json and the scores file are written, every score is a rate."""
+    paths = _saved_models(tmp_path, 2)
+    out = tmp_path / "g.zip"
+    assert soup.main(["--out", str(out), "--greedy", "--episodes", "1", "--batch", "1",
+                      *map(str, paths)]) == 0
+    scores = json.loads(out.with_suffix(".scores.json").read_text())
+    assert len(scores) == 3
+    assert all(0.0 <= s <= 1.0 and 0.0 <= snaps <= 1.0 for s, snaps in scores.values())
+    held = json.loads(out.with_suffix(".json").read_text())["soup"]["ingredients"]
+    assert 1 <= len(held) <= 2 and set(held) <= {str(p) for p in paths}
