@@ -74,11 +74,12 @@ def average_state_dicts(dicts: Sequence[dict[str, torch.Tensor]],
 
 
 def _policy_params(path: Path) -> dict[str, torch.Tensor]:
-    with zipfile.ZipFile(path) as z:
-        if "policy.pth" not in z.namelist():
-            raise ValueError(f"{path}: not an SB3 model (no policy.pth in the archive)")
-        return torch.load(io.BytesIO(z.read("policy.pth")), map_location="cpu",
-                          weights_only=True)
+    from stable_baselines3.common.save_util import load_from_zip_file
+
+    _, params, _ = load_from_zip_file(str(path), device="cpu", load_data=False)
+    if params is None or "policy" not in params:
+        raise ValueError(f"{path}: not an SB3 model (no policy networks in the archive)")
+    return params["policy"]
 
 
 def _meta_source(paths: Sequence[Path], like: Path | None) -> Path:
