@@ -18,8 +18,18 @@ Its sibling ``.json`` is the metadata of ``--like`` (default: the first ingredie
 sibling ``.json``) plus a ``soup`` entry listing the ingredients and weights.
 
 Greedy soup (the paper's Recipe 1): the ingredients are scored alone on the selection goals
-and sorted best first (success within 1 mm, then fewer snaps); the soup starts from the best,
-and each next ingredient stays in if the soup's success within 1 mm does not fall.
+and sorted best first; the soup starts from the best, and each next ingredient stays in if the
+soup's score does not get worse. Two objectives (``--objective``, :data:`OBJECTIVES`):
+
+* ``success`` (default): success within 1 mm, higher is better (ranking ties: fewer snaps);
+* ``targets``: the worse of the two target ratios, ``T = max(miss / (1 - target_success),
+  snaps / target_snaps)``, lower is better (ranking ties: higher success). ``T <= 1`` exactly
+  when both targets are met (defaults: success >= 0.90 within 1 mm, snaps <= 1 %), so a soup
+  is kept only if it does not move further from the target it misses most.
+
+``--known-scores FILE`` (a JSON object ``{model path: [success, snap rate]}``, e.g. an earlier
+run's ``.scores.json``) skips re-scoring ingredients already scored on the same selection goals:
+the evaluation is deterministic, so a score taken once holds.
 """
 from __future__ import annotations
 
@@ -35,7 +45,8 @@ from pathlib import Path
 
 import torch
 
-__all__ = ["average_state_dicts", "make_soup", "greedy_soup", "main"]
+__all__ = ["average_state_dicts", "make_soup", "greedy_soup", "target_ratio", "OBJECTIVES",
+           "main"]
 
 
 def average_state_dicts(dicts: Sequence[dict[str, torch.Tensor]],
@@ -128,30 +139,62 @@ def make_soup(paths: Sequence[str | Path], out: str | Path, *,
 Score = tuple[float, float]   # (success within 1 mm, snap rate)
 
 
+def target_ratio(score: Score, success: float = 0.90, snaps: float = 0.01) -> float:
+    """``max(miss / (1 - success), snap rate / snaps)`` of ``score = (success within 1 mm, snap
+    rate)``: the worse of the two ratios of a result to its target (``<= 1`` iff both targets
+    are met; lower is better)."""
+    if not (0.0 <= success < 1.0 and snaps > 0.0):
+        raise ValueError(f"targets: need 0 <= success < 1 and snaps > 0, got success={success}, "
+                         f"snaps={snaps}")
+    return max((1.0 - score[0]) / (1.0 - success), score[1] / snaps)
+
+
+# objective name -> the sort key of a score (lower is better; a soup is kept when its key is
+# not above the best so far on the key's first entry)
+OBJECTIVES: dict[str, Callable[..., tuple[float, float]]] = {
+    "success": lambda s, **_: (-s[0], s[1]),
+    "targets": lambda s, **t: (target_ratio(s, **t), -s[0]),
+}
+
+
 def greedy_soup(paths: Sequence[str | Path], out: str | Path,
                 score: Callable[[Path], Score], *, like: str | Path | None = None,
-                log: Callable[[str], None] = print) -> tuple[list[Path], dict[str, Score]]:
+                log: Callable[[str], None] = print, objective: str = "success",
+                targets: dict[str, float] | None = None,
+                known: dict[str, Score] | None = None) -> tuple[list[Path], dict[str, Score]]:
     """Greedy soup of ``paths`` written to ``out``: ``score(model path)`` gives ``(success,
-    snap rate)`` on the selection goals. Returns the kept ingredients and every score taken
-    (keyed by ingredient path, and ``soup+<n>`` for each soup tried)."""
+    snap rate)`` on the selection goals; ``objective`` one of :data:`OBJECTIVES` (``targets``:
+    keyword arguments of :func:`target_ratio`); ``known`` scores already taken (keyed by
+    ``str(path)``) are used instead of calling ``score``. Returns the kept ingredients and every
+    score taken or used (keyed by ingredient path, and ``soup+<n>`` for each soup tried)."""
+    if objective not in OBJECTIVES:
+        raise ValueError(f"objective must be one of {sorted(OBJECTIVES)}, got {objective!r}")
+    targets = targets or {}
+
+    def key(sc: Score) -> tuple[float, float]:
+        return OBJECTIVES[objective](sc, **targets)
+
+    key((0.5, 0.5))    # validates the targets before any evaluation
     paths = [Path(p) for p in paths]
     like = like if like is not None else _meta_source(paths, None)
+    known = known or {}
     scores: dict[str, Score] = {}
     for p in paths:
-        scores[str(p)] = score(p)
-        log(f"ingredient {p}: success {scores[str(p)][0]:.3f}, snaps {scores[str(p)][1]:.3f}")
-    ranked = sorted(paths, key=lambda p: (-scores[str(p)][0], scores[str(p)][1]))
+        scores[str(p)] = tuple(known[str(p)]) if str(p) in known else score(p)
+        log(f"ingredient {p}: success {scores[str(p)][0]:.3f}, snaps {scores[str(p)][1]:.3f}"
+            + (" (known)" if str(p) in known else ""))
+    ranked = sorted(paths, key=lambda p: key(scores[str(p)]))
     kept = [ranked[0]]
-    best = scores[str(ranked[0])]
+    best = key(scores[str(ranked[0])])
     for p in ranked[1:]:
         trial = make_soup(kept + [p], out, like=like)
         s = score(trial)
         scores[f"soup+{len(scores)}:{p}"] = s
-        verdict = "kept" if s[0] >= best[0] else "dropped"
-        log(f"soup + {p}: success {s[0]:.3f}, snaps {s[1]:.3f} -> {verdict}")
-        if s[0] >= best[0]:
+        ok = key(s)[0] <= best[0]
+        log(f"soup + {p}: success {s[0]:.3f}, snaps {s[1]:.3f} -> {'kept' if ok else 'dropped'}")
+        if ok:
             kept.append(p)
-            best = s
+            best = key(s)
     make_soup(kept, out, like=like)
     return kept, scores
 
@@ -173,6 +216,15 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--episodes", type=int, default=500)
     p.add_argument("--batch", type=int, default=50)
     p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--objective", choices=sorted(OBJECTIVES), default="success",
+                   help="greedy soup: what a kept ingredient must not worsen (see above)")
+    p.add_argument("--target-success", type=float, default=0.90,
+                   help="--objective targets: success target within 1 mm (default 0.90)")
+    p.add_argument("--target-snaps", type=float, default=0.01,
+                   help="--objective targets: snap-rate target (default 0.01)")
+    p.add_argument("--known-scores", default=None, metavar="JSON",
+                   help="greedy soup: {model path: [success, snap rate]} already taken on the "
+                        "same selection goals (those ingredients are not re-scored)")
     args = p.parse_args(argv)
     torch.set_num_threads(args.threads)
     try:
@@ -193,7 +245,16 @@ def main(argv: list[str] | None = None) -> int:
             s = summarize(rollout(policy, venv, args.episodes, seed=args.seed, progress=False))
             return s["success@1mm"], s["snap_rate"]
 
-        kept, scores = greedy_soup(args.models, args.out, score, like=like)
+        known = None
+        if args.known_scores is not None:
+            known = json.loads(Path(args.known_scores).read_text())
+            if not isinstance(known, dict) or not all(
+                    isinstance(v, list) and len(v) == 2 for v in known.values()):
+                raise ValueError(f"--known-scores {args.known_scores}: need a JSON object "
+                                 f"{{model path: [success, snap rate]}}")
+        targets = {"success": args.target_success, "snaps": args.target_snaps}
+        kept, scores = greedy_soup(args.models, args.out, score, like=like,
+                                   objective=args.objective, targets=targets, known=known)
     except (ValueError, KeyError, FileNotFoundError) as e:
         p.error(str(e))
     print(f"wrote {args.out}: {len(kept)} of {len(args.models)} ingredients kept")

@@ -13,7 +13,7 @@ import torch
 
 import envs  # noqa: F401  (registers the env ids)
 from training import soup
-from training.soup import average_state_dicts, greedy_soup, make_soup
+from training.soup import average_state_dicts, greedy_soup, make_soup, target_ratio
 
 ENV = "torchpvs/CTRReachForce-v0"
 
@@ -130,6 +130,48 @@ def test_the_greedy_recipe_keeps_what_does_not_lower_the_score(tmp_path):
     assert len(scores) == 4 + 3
 
 
+def test_the_target_ratio_is_the_worse_of_the_two_ratios_to_target():
+    # by hand: miss 0.10 / 0.10 = 1.0 and snaps 0.02 / 0.01 = 2.0 -> 2.0
+    assert target_ratio((0.90, 0.02)) == pytest.approx(2.0)
+    # miss 0.15 / 0.10 = 1.5 beats snaps 0.005 / 0.01 = 0.5 -> 1.5
+    assert target_ratio((0.85, 0.005)) == pytest.approx(1.5)
+    # both met iff <= 1
+    assert target_ratio((0.91, 0.008)) <= 1.0 < target_ratio((0.91, 0.012))
+    assert target_ratio((0.7, 0.1), success=0.5, snaps=0.2) == pytest.approx(0.6)
+    with pytest.raises(ValueError, match="targets"):
+        target_ratio((0.9, 0.0), success=1.0)
+    with pytest.raises(ValueError, match="targets"):
+        target_ratio((0.9, 0.0), snaps=0.0)
+
+
+def test_the_greedy_recipe_under_the_targets_objective_and_known_scores(tmp_path):
+    """Under ``targets`` an ingredient that raises success but also snaps is dropped when the
+    snaps are the binding target; known scores are used without calling the scorer."""
+    paths = _saved_models(tmp_path, 3)
+    alone = {paths[0]: (0.90, 0.020), paths[1]: (0.85, 0.004), paths[2]: (0.88, 0.012)}
+    # ranked by T alone (max(miss / 0.10, snaps / 0.01)): m2 1.2, m1 1.5, m0 2.0.
+    # m2 + m1 -> (0.89, 0.008): T 1.1 <= 1.2, kept; + m0 -> (0.91, 0.016): T 1.6, dropped
+    # although it raises success (the success objective would keep it)
+    soups = {("m1.zip", "m2.zip"): (0.89, 0.008), ("m0.zip", "m1.zip", "m2.zip"): (0.91, 0.016)}
+    calls = []
+
+    def score(path):
+        calls.append(path)
+        held = json.loads(path.with_suffix(".json").read_text())
+        if "soup" not in held:
+            return alone[path]
+        return soups[tuple(sorted(p.rsplit("/", 1)[-1] for p in held["soup"]["ingredients"]))]
+
+    known = {str(paths[0]): list(alone[paths[0]])}
+    kept, scores = greedy_soup(paths, tmp_path / "t.zip", score, objective="targets",
+                               known=known, log=lambda _: None)
+    assert kept == [paths[2], paths[1]]
+    assert paths[0] not in calls and scores[str(paths[0])] == (0.90, 0.020)   # known, not re-run
+    assert len(calls) == 2 + 2                       # m1, m2 alone; two soups
+    with pytest.raises(ValueError, match="objective"):
+        greedy_soup(paths, tmp_path / "x.zip", score, objective="speed", log=lambda _: None)
+
+
 def test_the_cli_writes_a_soup_and_refuses_missing_metadata(tmp_path, capsys):
     paths = _saved_models(tmp_path, 2)
     assert soup.main(["--out", str(tmp_path / "u.zip"), *map(str, paths)]) == 0
@@ -153,3 +195,20 @@ def test_the_greedy_cli_scores_on_seeded_goals_and_writes_its_scores(tmp_path):
     assert all(0.0 <= s <= 1.0 and 0.0 <= snaps <= 1.0 for s, snaps in scores.values())
     held = json.loads(out.with_suffix(".json").read_text())["soup"]["ingredients"]
     assert 1 <= len(held) <= 2 and set(held) <= {str(p) for p in paths}
+
+
+def test_the_greedy_cli_takes_the_targets_objective_and_known_scores(tmp_path, capsys):
+    paths = _saved_models(tmp_path, 2)
+    known = tmp_path / "known.json"
+    known.write_text(json.dumps({str(paths[0]): [0.5, 0.25]}))
+    out = tmp_path / "k.zip"
+    assert soup.main(["--out", str(out), "--greedy", "--episodes", "1", "--batch", "1",
+                      "--objective", "targets", "--known-scores", str(known),
+                      *map(str, paths)]) == 0
+    scores = json.loads(out.with_suffix(".scores.json").read_text())
+    assert scores[str(paths[0])] == [0.5, 0.25]
+    assert "(known)" in capsys.readouterr().out
+    known.write_text(json.dumps({str(paths[0]): 0.5}))
+    with pytest.raises(SystemExit):
+        soup.main(["--out", str(out), "--greedy", "--known-scores", str(known), *map(str, paths)])
+    assert "--known-scores" in capsys.readouterr().err
