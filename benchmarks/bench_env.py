@@ -15,6 +15,15 @@ Episodes auto-reset as in training (reset cost included). Usage::
 
 One torch thread is the default because it is what training uses (2 threads on a 2-core
 machine contend with the learner).
+
+``--breakdown`` instead splits one batched force-env step (``CTRReachVecEnv``, the largest of
+``--batches``) into its stages, from a ``cProfile`` of ``--steps`` steps: the solves, the
+actuator stiffness (for the linearly implicit step and the substep count), the stability
+margin, and within the solves the layout, the maps, the compiled Newton and pose calls and the
+forces. The profiler's per-call cost inflates the Python-heavy stages, so read the shares, not
+the absolute times (which the table mode gives without a profiler)::
+
+    python benchmarks/bench_env.py --breakdown --batches 64 --steps 30
 """
 
 from __future__ import annotations
@@ -80,6 +89,62 @@ def bench_batched(robot: str, control: str, B: int, n_steps: int):
     return rate, ms, float(np.mean(substeps))
 
 
+# (label, module, qualified name) of the stages --breakdown reports, outermost first
+_STAGES = (
+    ("step (all)", "envs.dynamics", "RobotBatch.step_force"),
+    ("  solves", "torchpvs.solver", "solve_tensors"),
+    ("    layout (build_layout)", "torchpvs.sections", "build_layout"),
+    ("    maps (build_maps)", "torchpvs.mechanics", "build_maps"),
+    ("    compiled Newton", "torchpvs.compiled", "solve"),
+    ("    compiled pose", "torchpvs.compiled", "pose"),
+    ("    actuation forces", "torchpvs.forces", "equilibrium_forces"),
+    ("    order estimate", "torchpvs.order_control", "order_estimate"),
+    ("  actuator stiffness", "torchpvs.jacobians", "actuator_stiffness"),
+    ("    its factorization", "torchpvs.implicit", "adjoint_factor"),
+    ("  stability margin", "torchpvs.equilibrium", "Equilibrium.min_stiffness_eigenvalue"),
+)
+
+
+def breakdown(robot: str, B: int, n_steps: int) -> None:
+    """Print the share of a batched force-env step spent in each of :data:`_STAGES`."""
+    import cProfile
+    import importlib
+    import inspect
+    import pstats
+
+    import envs
+    venv = envs.CTRReachVecEnv(B, robot=robot)
+    venv.seed(0)
+    venv.reset()
+    rng = np.random.default_rng(0)
+    shape = (B, venv.action_space.shape[0])
+    for _ in range(3):
+        venv.step(rng.uniform(-1, 1, shape).astype(np.float32))
+    prof = cProfile.Profile()
+    prof.enable()
+    for _ in range(n_steps):
+        venv.step(rng.uniform(-1, 1, shape).astype(np.float32))
+    prof.disable()
+    stats = pstats.Stats(prof).stats       # (file, line, name) -> (cc, nc, tt, ct, callers)
+    rows = []
+    for label, module, qual in _STAGES:
+        obj = importlib.import_module(module)
+        for part in qual.split("."):
+            obj = getattr(obj, part)
+        fn = obj.fget if isinstance(obj, property) else obj
+        code = inspect.unwrap(fn).__code__
+        key = (code.co_filename, code.co_firstlineno, code.co_name)
+        calls, cum = (stats[key][1], stats[key][3]) if key in stats else (0, 0.0)
+        rows.append((label, calls, cum))
+    total = rows[0][2]
+    print(f"force env, B = {B}, {n_steps} profiled steps: {1e3 * total / n_steps:.1f} ms per "
+          f"step under the profiler")
+    print(f"{'stage':<30}{'calls/step':>11}{'ms/step':>9}{'share':>8}")
+    for label, calls, cum in rows:
+        print(f"{label:<30}{calls / n_steps:>11.2f}{1e3 * cum / n_steps:>9.2f}"
+              f"{cum / total:>8.0%}")
+
+
 def main() -> None:
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("--robot", default="fig3_two_tube")
@@ -87,8 +152,13 @@ def main() -> None:
     ap.add_argument("--steps", type=int, default=40, help="timed step calls per configuration")
     ap.add_argument("--dummy", type=int, default=16, help="B of the DummyVecEnv comparison")
     ap.add_argument("--threads", type=int, default=1)
+    ap.add_argument("--breakdown", action="store_true",
+                    help="split one force-env step into its stages instead (see above)")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
+    if args.breakdown:
+        breakdown(args.robot, args.batches[-1], args.steps)
+        return
     print(f"robot {args.robot}, torch {torch.__version__}, {args.threads} thread(s), "
           f"{args.steps} timed steps per row")
     print(f"{'env':<34}{'B':>5}{'robot-steps/s':>15}{'ms/step call':>14}{'substeps':>10}")
