@@ -67,11 +67,11 @@ def test_registry_holds_kernels_of_callables_accepted_by_the_options():
         assert isinstance(kern, Kernel), name
         assert all(callable(getattr(kern, f)) for f in Kernel._fields), name
         assert tp.SolverOptions(kernel=name).kernel == name
-    # The compiled kernel replaces the Newton solve, step, new-section step, pose, force
-    # partials, the stiffness's actuator rows, the tip partials and the tip load's rows (which
-    # the eager kernel leaves to autograd), and reuses the rest.
-    replaced = ("solve", "step", "section_step", "pose", "partials", "actuation_rows",
-                "tip_partials", "load_rows")
+    # The compiled kernel replaces the layout and maps, the Newton solve, step, new-section
+    # step, pose, force partials, the stiffness's actuator rows, the tip partials and the tip
+    # load's rows (which the eager kernel leaves to autograd), and reuses the rest.
+    replaced = ("layout", "solve", "step", "section_step", "pose", "partials",
+                "actuation_rows", "tip_partials", "load_rows")
     for f in Kernel._fields:
         same = getattr(COMPILED, f) is getattr(EAGER, f)
         assert same == (f not in replaced), f

@@ -65,13 +65,18 @@ def test_tube_rows_equal_in_value_reuse_the_layout_and_others_do_not(monkeypatch
     the tube values are equal, rebuilt when they differ. At the Fig. 3 actuation the outer
     tube's straight-to-curved transition sits at the orifice (a kink), so a warm solve at a
     new rotation rebuilds no layout, and its forces equal a fresh plan's."""
+    import torchpvs.compiled_layout as compiled_layout
+    import torchpvs.mechanics as mechanics
     import torchpvs.plan as plan_mod
     from torchpvs.sections import tube_rows
 
     scene = tp.load_scene("renda2021_fig3")
     built = []
-    real = plan_mod.build_layout
-    monkeypatch.setattr(plan_mod, "build_layout", lambda *a, **k: built.append(1) or real(*a, **k))
+    # every layout builder: the eager one (also the default of Plan.layout) and the compiled
+    # kernel's
+    for mod, name in ((mechanics, "build_layout"), (compiled_layout, "layout_and_maps")):
+        real = getattr(mod, name)
+        monkeypatch.setattr(mod, name, lambda *a, _r=real, **k: built.append(1) or _r(*a, **k))
     plan = plan_for(scene, torch.float64, torch.device("cpu"))
     disc = tp.SolverOptions().discretization(2)
     D = torch.tensor([scene.actuation.insertion] * 2, dtype=torch.float64)
@@ -88,7 +93,9 @@ def test_tube_rows_equal_in_value_reuse_the_layout_and_others_do_not(monkeypatch
         plan.layout(other, D, A, Z, Z, off, disc, nq)
         assert len(built) == 2                                   # other values: rebuilt
 
+    built.clear()
     eq0 = tp.solve(scene)
+    assert built                                                 # the spies see the kernel's
     assert bool(eq0.force_kink.any())
     built.clear()
     eq1 = tp.solve(scene, rotation=[0.0, 1.5], initial=eq0)

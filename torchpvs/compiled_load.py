@@ -59,7 +59,8 @@ def _default_cache_dir() -> str | None:
     the sources) where the sources cannot be read."""
     here = Path(__file__).resolve().parent
     try:
-        sources = [(here / f).read_bytes() for f in ("compiled.py", "compiled_load.py")]
+        sources = [(here / f).read_bytes()
+                   for f in ("compiled.py", "compiled_load.py", "compiled_layout.py")]
     except OSError:      # pragma: no cover - e.g. a zipped installation
         return None
     base = os.environ.get("NUMBA_CACHE_DIR") or os.path.join(

@@ -1,12 +1,13 @@
 """Stage 5a — the kernel seam: what the driver asks of a kernel, and the registry of kernels.
 
 The driver (:mod:`torchpvs.solver` with :mod:`torchpvs.order_control` and
-:mod:`torchpvs.predictor`) chooses discretizations, ramps loads, builds layouts and maps (the
+:mod:`torchpvs.predictor`) chooses discretizations, ramps loads, keeps layouts and maps (the
 plan), and assembles the outputs; every computation it makes *per batch element* goes through
-one :class:`Kernel`: the cold-start guess, the Newton solve, the single Newton steps of the
-order estimate and the kink re-solves, the new-section step of the one-sided forces, the tip
-pose, the closed-form partials of the actuation forces, the rows of the actuator stiffness and
-the tip's partials of the control Jacobians, and the SPD solves of the rotation predictor. A
+one :class:`Kernel`: the layout and maps at new insertions, the cold-start guess, the Newton
+solve, the single Newton steps of the order estimate and the kink re-solves, the new-section
+step of the one-sided forces, the tip pose, the closed-form partials of the actuation forces,
+the rows of the actuator stiffness and the tip's partials of the control Jacobians, and the
+SPD solves of the rotation predictor. A
 kernel is a :class:`Kernel` of plain functions registered in :data:`KERNELS` under a name
 (``SolverOptions(kernel=name)``), in the spirit of torchdiffeq's ``SOLVERS``; adding one (a
 compiled CPU kernel, a fused GPU kernel) touches no driver code, and a kernel that implements
@@ -24,11 +25,12 @@ from typing import NamedTuple
 
 import torch
 
-from . import compiled
+from . import compiled, compiled_layout
 from .batch_linalg import active_index, chunked, compact, compact_scaled, expand, spd_solve, take
 from .forces import actuation_rows, closed_form_partials
 from .mechanics import (
     Maps,
+    build_layout_and_maps,
     compact_q,
     expand_q,
     section_grad_block,
@@ -51,6 +53,12 @@ class Kernel(NamedTuple):
     unchanged, never NaN.
 
     Attributes:
+        layout: ``layout(tubes, D, A, F, M, loaded, disc, nq) -> (lay, maps)``: the
+            :class:`~torchpvs.sections.Layout` and :class:`~torchpvs.mechanics.Maps` of a batch
+            at insertions ``D (B, N)``, rotations ``A``, tip load ``F, M (B, 3)`` (the
+            arguments of :func:`torchpvs.sections.build_layout`; ``nq`` the padded coordinate
+            count of ``disc``), which :meth:`torchpvs.plan.Plan.layout` keeps while the
+            insertions stay; differentiable where an input requires grad.
         guess: ``guess(lay, maps, tab, disc, N) -> q0 (B, nq)``, the cold-start coordinates
             (:class:`~torchpvs.sections.Layout`, :class:`~torchpvs.mechanics.Maps`,
             :class:`~torchpvs.sections.Tables`).
@@ -90,6 +98,7 @@ class Kernel(NamedTuple):
             one double-backward pass through the loaded potential (the eager reference).
     """
 
+    layout: Callable[..., tuple[Layout, Maps]]
     guess: Callable[..., torch.Tensor]
     solve: Callable[..., NewtonResult]
     step: Callable[[torch.Tensor, Problem], tuple[torch.Tensor, torch.Tensor]]
@@ -214,10 +223,15 @@ def default_guess(lay: Layout, maps: Maps, tab: Tables, disc: Discretization,
 
 
 #: The reference kernel: batched eager torch on any device.
-EAGER = Kernel(guess=default_guess, solve=newton, step=newton_step,
+EAGER = Kernel(layout=build_layout_and_maps, guess=default_guess, solve=newton, step=newton_step,
                section_step=new_section_step, pose=tip_pose, spd_solve=spd_solve,
                partials=closed_form_partials, actuation_rows=actuation_rows,
                tip_partials=tip_partials, load_rows=no_load_rows)
+
+
+def _compiled_layout(tubes, D, A, F, M, loaded, disc, nq):
+    out = compiled_layout.layout_and_maps(tubes, D, A, F, M, loaded, disc, nq)
+    return build_layout_and_maps(tubes, D, A, F, M, loaded, disc, nq) if out is None else out
 
 
 def _compiled_solve(q, prob, L_char, **kwargs):
@@ -280,13 +294,14 @@ def _compiled_pose(q, lay, tab, constants):
     return tip_pose(q, lay, tab, constants) if out is None else out
 
 
-#: The compiled CPU kernel (:mod:`torchpvs.compiled`, numba): the Newton solve and step, the
-#: new-section step, the tip pose, the closed-form force partials, the stiffness's actuator
-#: rows (a complex step of the partials) and the tip partials (the Magnus chain in ``q``, a
-#: complex step of the pose in the actuators) per element; the eager
-#: kernel wherever it does not apply (GPU tensors; a tip moment for the solve and step, a tip
-#: load for the new-section step; partials that must carry a graph).
-COMPILED = EAGER._replace(solve=_compiled_solve, step=_compiled_step,
+#: The compiled CPU kernel (:mod:`torchpvs.compiled`, numba): the layout and maps
+#: (:mod:`torchpvs.compiled_layout`), the Newton solve and step, the new-section step, the tip
+#: pose, the closed-form force partials, the stiffness's actuator rows (a complex step of the
+#: partials) and the tip partials (the Magnus chain in ``q``, a complex step of the pose in the
+#: actuators) per element; the eager kernel wherever it does not apply (GPU tensors; a tip
+#: moment for the solve and step, a tip load for the new-section step; layouts and partials
+#: that must carry a graph; float32 layouts).
+COMPILED = EAGER._replace(layout=_compiled_layout, solve=_compiled_solve, step=_compiled_step,
                           section_step=_compiled_section_step, pose=_compiled_pose,
                           partials=_compiled_partials, actuation_rows=_compiled_actuation_rows,
                           tip_partials=_compiled_tip_partials, load_rows=_compiled_load_rows)

@@ -584,12 +584,23 @@ def build_maps(lay: Layout, tab: Tables, nq: int) -> Maps:
     diag[..., :2] = A[..., None]
     diag[..., 2:] = T.permute(0, 1, 3, 4, 2)
     EIw = W[..., None] * EIp                      # node weights x stiffness (B, S, Q, N)
-    values_T, Q_QQ, phi_PQ = _node_tables(phi, tab.Q_q)
+    values_T, Q_QQ, phi_PQ = node_tables(phi, tab.Q_q)
     return Maps(ustar=ustar.detach(), EIw=EIw, EIws=sum_dim(EIw, -1), GJw=W[..., None] * GJp,
                 H_sections=blocks, guide=guide, guide_const=lay.guide_const.detach(), h=h,
                 qmask=qmask, psi0=lay.psi0.detach(), bvec=bvec, cidx=cidx,
                 presc_inc=full.presc_inc.detach(), phi=phi, Qb=tab.Q_q, values_T=values_T,
                 Q_QQ=Q_QQ, phi_PQ=phi_PQ, pose=pose)
+
+
+def build_layout_and_maps(tubes, D: torch.Tensor, A: torch.Tensor, F: torch.Tensor,
+                          M: torch.Tensor, loaded: torch.Tensor, disc, nq: int
+                          ) -> tuple[Layout, Maps]:
+    """``(lay, maps)``: :func:`torchpvs.sections.build_layout` of the batch (its arguments) and
+    :func:`build_maps` of that layout (``nq`` the padded coordinate count of ``disc``): the
+    eager kernel's ``layout`` (:class:`torchpvs.kernel.Kernel`), differentiable through the
+    layout."""
+    lay = build_layout(tubes, D, A, F, M, loaded, disc)
+    return lay, build_maps(lay, disc.tables(D.dtype, D.device), nq)
 
 
 def compact_q(q: torch.Tensor, cidx: torch.Tensor) -> torch.Tensor:
@@ -633,7 +644,7 @@ def pose_constants(maps: Maps) -> PoseConstants:
 
 
 
-def _node_tables(phi: torch.Tensor, Qb: torch.Tensor
+def node_tables(phi: torch.Tensor, Qb: torch.Tensor
                  ) -> tuple[torch.Tensor, torch.Tensor, torch.Tensor]:
     """Contraction tables over the quadrature nodes, so that each node sum is one matmul:
     ``values_T (n, 2Q)`` gives phi and Q values from coefficients; ``Q_QQ (Q, n + n^2)`` and

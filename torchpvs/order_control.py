@@ -119,7 +119,7 @@ def solve_order(scene, tubes, D, A, F, M, order, n_magnus, opts, q_init, plan: P
     dtype, device = D.dtype, D.device
     loaded = loaded_rows(F, M, opts)
     nq = n_coordinates(N, disc.n_basis)
-    lay, maps = plan.layout(tubes, D, A, F, M, loaded, disc, nq)
+    lay, maps = plan.layout(tubes, D, A, F, M, loaded, disc, nq, kernel.layout)
     tab = disc.tables(dtype, device)
     with_load = bool(loaded.any())
     has_moment = bool((M.abs().sum(-1) > 0).any()) or opts.load_coordinates
@@ -170,7 +170,7 @@ def order_estimate(scene, tubes, D, A, F, M, res: SolveState, opts: SolverOption
     disc = replace(opts.discretization(order), n_magnus=res.disc.n_magnus)
     n_from = res.disc.n_basis
     nq = n_coordinates(N, disc.n_basis)
-    lay, maps = plan.layout(tubes, D, A, F, M, res.loaded, disc, nq)
+    lay, maps = plan.layout(tubes, D, A, F, M, res.loaded, disc, nq, kernel.layout)
     tab = disc.tables(D.dtype, D.device)
     prob = Problem(lay, tab, maps, res.with_load, res.has_moment)
     q = resize_q(res.q, N, n_from, disc.n_basis) * lay.qmask

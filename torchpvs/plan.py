@@ -21,9 +21,9 @@ from dataclasses import dataclass, field
 
 import torch
 
-from .mechanics import Maps, build_maps
+from .mechanics import Maps, build_layout_and_maps
 from .scene import Scene
-from .sections import Discretization, Layout, TubeProperties, TubeTensors, build_layout, tube_rows
+from .sections import Discretization, Layout, TubeProperties, TubeTensors, tube_rows
 
 __all__ = ["Plan", "plan_for", "tube_tensors"]
 
@@ -58,6 +58,7 @@ class _Memo:
     psi0_guide: torch.Tensor
     lay: Layout
     maps: Maps
+    build: object                               # the builder that made them (Kernel.layout)
     extra: dict = field(default_factory=dict)   # constants computed on demand (see cached)
 
 
@@ -73,25 +74,26 @@ class Plan:
     _memo: dict = field(default_factory=dict, repr=False)
 
     def layout(self, tubes: TubeTensors, D, A, F, M, loaded, disc: Discretization,
-               nq: int) -> tuple[Layout, Maps]:
+               nq: int, build=build_layout_and_maps) -> tuple[Layout, Maps]:
         """``(lay, maps)`` for a batch (:class:`~torchpvs.sections.Layout`,
         :class:`~torchpvs.mechanics.Maps`); reused from the last call with the same insertions,
-        loaded mask, discretization and tube tensors (only angles and loads are replaced)."""
+        loaded mask, discretization and tube tensors (only angles and loads are replaced).
+        ``build``: the kernel's builder (:attr:`torchpvs.kernel.Kernel.layout`; default the
+        eager one, :func:`torchpvs.mechanics.build_layout_and_maps`)."""
         grad = torch.is_grad_enabled() and any(
             t.requires_grad for t in (D, A, F, M, *tubes.tensors()))
         key = (disc, D.shape)
         memo = self._memo.get(key)
         if (not grad and memo is not None and memo.D.shape == D.shape
-                and _same_tubes(memo.tubes, tubes) and torch.equal(memo.D, D)
-                and torch.equal(memo.loaded, loaded)):
+                and memo.build is build and _same_tubes(memo.tubes, tubes)
+                and torch.equal(memo.D, D) and torch.equal(memo.loaded, loaded)):
             # psi0 = alpha + (twist of the curved material held in the guide).
             lay = memo.lay._replace(psi0=memo.psi0_guide + A, alpha=A, force=F, moment=M)
             return lay, memo.maps._replace(psi0=lay.psi0)
-        lay = build_layout(tubes, D, A, F, M, loaded, disc)
-        maps = build_maps(lay, disc.tables(D.dtype, D.device), nq)
+        lay, maps = build(tubes, D, A, F, M, loaded, disc, nq)
         if not grad:
             self._memo[key] = _Memo(D.clone(), loaded.clone(), disc, tubes,
-                                     lay.psi0 - A, lay, maps)
+                                     lay.psi0 - A, lay, maps, build)
             if len(self._memo) > 4:
                 self._memo.pop(next(iter(self._memo)))
         return lay, maps

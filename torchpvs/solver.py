@@ -267,7 +267,8 @@ class SolutionResolver:
         disc = res.disc
         nq = q0.shape[-1]
         loaded = loaded_rows(Fn, Mn, opts)
-        lay, maps = self.plan.layout(tube_rows(tubes, sel), Dn, An, Fn, Mn, loaded, disc, nq)
+        lay, maps = self.plan.layout(tube_rows(tubes, sel), Dn, An, Fn, Mn, loaded, disc, nq,
+                                     kernel.layout)
         q1 = q0 * lay.qmask
         moved = (lay.qmask != res.lay.qmask[sel]).any(-1).nonzero().flatten()
         if moved.numel():
