@@ -93,8 +93,9 @@ def bench_batched(robot: str, control: str, B: int, n_steps: int):
 _STAGES = (
     ("step (all)", "envs.dynamics", "RobotBatch.step_force"),
     ("  solves", "torchpvs.solver", "solve_tensors"),
-    ("    layout (build_layout)", "torchpvs.sections", "build_layout"),
-    ("    maps (build_maps)", "torchpvs.mechanics", "build_maps"),
+    ("    layout + maps, compiled", "torchpvs.compiled_layout", "layout_and_maps"),
+    ("    layout (eager build_layout)", "torchpvs.sections", "build_layout"),
+    ("    maps (eager build_maps)", "torchpvs.mechanics", "build_maps"),
     ("    compiled Newton", "torchpvs.compiled", "solve"),
     ("    compiled pose", "torchpvs.compiled", "pose"),
     ("    actuation forces", "torchpvs.forces", "equilibrium_forces"),

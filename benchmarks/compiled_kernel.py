@@ -20,6 +20,14 @@ Rounds alternate the kernels (eager, compiled, eager, ...) and each figure is th
 and the largest tip and force differences and whether the iteration counts are equal.
 ``--first-use``: also the cost of the first compiled solve in a fresh process with an empty
 numba cache (compilation), and with the cache warm (the cost every later process pays).
+
+``--ablate FIELD [FIELD ...]``: what one compiled function buys. A third kernel joins the
+rounds, the compiled one with those :class:`torchpvs.kernel.Kernel` fields set back to the
+eager functions (registered for this process only as ``"compiled-without-..."``), and its
+times are printed beside the compiled kernel's, e.g. the compiled layout and maps in the
+environments, where every step moves the carriages::
+
+    python benchmarks/compiled_kernel.py --robots fig3 --batches 64 --ablate layout
 """
 
 from __future__ import annotations
@@ -40,7 +48,21 @@ from fast_path import bench_scene, best_time  # a sibling script (run from bench
 
 import torchpvs
 
-KERNELS = ("newton", "compiled")
+KERNELS = ["newton", "compiled"]       # (extended by --ablate)
+
+
+def register_ablation(fields) -> str:
+    """Register the compiled kernel with ``fields`` set back to the eager functions (in this
+    process's :data:`torchpvs.kernel.KERNELS`); its name, appended to :data:`KERNELS`."""
+    from torchpvs import kernel
+    bad = [f for f in fields if f not in kernel.Kernel._fields]
+    if bad:
+        raise SystemExit(f"--ablate: {bad} are not Kernel fields {kernel.Kernel._fields}")
+    name = "compiled-without-" + "+".join(fields)
+    kernel.KERNELS[name] = kernel.COMPILED._replace(
+        **{f: getattr(kernel.EAGER, f) for f in fields})
+    KERNELS.append(name)
+    return name
 
 
 def _configs(scene, n: int, B: int):
@@ -139,6 +161,13 @@ def bench_env(steps: int, B: int = 64, env_id: str | None = None) -> dict:
     return rates
 
 
+def _ablated_rate(rates: dict, ablated: str | None) -> str:
+    if not ablated:
+        return ""
+    return (f"; {ablated} {rates[ablated]:.0f} (compiled / it: "
+            f"{rates['compiled'] / rates[ablated]:.2f}x)")
+
+
 _FIRST = ("import time; t = time.perf_counter(); import torchpvs; "
           "torchpvs.solve(torchpvs.load_scene('renda2021_fig3'), "
           "options=torchpvs.SolverOptions(kernel='compiled')); "
@@ -163,29 +192,37 @@ def main(argv=None) -> dict:
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--env-steps", type=int, default=20)
     ap.add_argument("--first-use", action="store_true")
+    ap.add_argument("--ablate", nargs="+", default=None, metavar="FIELD",
+                    help="also time the compiled kernel with these Kernel fields eager")
     ap.add_argument("--json")
     args = ap.parse_args(argv)
     torch.set_num_threads(1)
+    ablated = register_ablation(args.ablate) if args.ablate else None
     results = {"robots": [bench_robot(r, args.configs, args.repeat, args.batches)
                           for r in args.robots]}
     for r in results["robots"]:
         print(f"\n{r['robot']}: ms per solve (best of {args.repeat}, alternating rounds)")
-        print(f"{'case':<14}{'eager':>10}{'compiled':>10}{'eager/compiled':>16}")
+        extra = f"{'ablated':>10}{'ablated/compiled':>18}" if ablated else ""
+        print(f"{'case':<14}{'eager':>10}{'compiled':>10}{'eager/compiled':>16}{extra}")
         for key, t in r.items():
             if isinstance(t, dict) and "newton" in t:
+                extra = (f"{t[ablated]:>10.3f}{t[ablated] / t['compiled']:>17.2f}x"
+                         if ablated else "")
                 print(f"{key:<14}{t['newton']:>10.3f}{t['compiled']:>10.3f}"
-                      f"{t['newton'] / t['compiled']:>15.2f}x")
+                      f"{t['newton'] / t['compiled']:>15.2f}x{extra}")
         for B in r["batches"]:
             print(f"B = {B} agreement: {r[f'B{B}_agreement']}")
     if args.env_steps:
         rates = bench_env(args.env_steps)
         results["env_B64_robot_steps_per_s"] = rates
         print(f"\nforce env, B = 64: eager {rates['newton']:.0f}, compiled "
-              f"{rates['compiled']:.0f} robot-steps/s ({rates['compiled'] / rates['newton']:.2f}x)")
+              f"{rates['compiled']:.0f} robot-steps/s ({rates['compiled'] / rates['newton']:.2f}x)"
+              + _ablated_rate(rates, ablated))
         rates = bench_env(max(1, args.env_steps // 2), 16, "torchpvs/CTRReachForceRobust-v0")
         results["robust_env_B16_robot_steps_per_s"] = rates
         print(f"robust env (tip-loaded plants), B = 16: eager {rates['newton']:.0f}, compiled "
-              f"{rates['compiled']:.0f} robot-steps/s ({rates['compiled'] / rates['newton']:.2f}x)")
+              f"{rates['compiled']:.0f} robot-steps/s ({rates['compiled'] / rates['newton']:.2f}x)"
+              + _ablated_rate(rates, ablated))
     if args.first_use:
         results["first_use"] = first_use()
         print(f"first compiled solve in a fresh process: {results['first_use']}")
