@@ -124,7 +124,7 @@ def bench_robot(name: str, configs: int, repeat: int, batches=(1, 64, 1024)) -> 
                     t[k] = min(t[k], best_time(lambda k=k: fn(k), 1))
             out[f"B{B}_{case}"] = {k: t[k] / n_solves * 1e3 for k in KERNELS}
         a, b = (torchpvs.solve(scene, insertion=ins, rotation=rot, options=opts[k])
-                for k in KERNELS)
+                for k in KERNELS[:2])
         out[f"B{B}_agreement"] = {
             "tip_m": float((a.tip_position - b.tip_position).abs().max()),
             "force": float((a.actuation_forces - b.actuation_forces).nan_to_num().abs().max()),

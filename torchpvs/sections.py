@@ -322,7 +322,9 @@ def _poly_eval(coef: torch.Tensor, t: torch.Tensor) -> torch.Tensor:
     """Horner: ``coef (..., P, G?)`` broadcast against ``t``; coefficients on dim -2 when ``t``
     carries a trailing node dim (see callers), else on dim -1."""
     P = coef.shape[-2]
-    out = torch.zeros(torch.broadcast_shapes(coef[..., 0, :].shape, t.shape),
+    # (the shape by broadcast_tensors: torch.broadcast_shapes imports sympy on its first call,
+    # 0.4-0.9 s that the first layout with a graph of a process paid)
+    out = torch.zeros(torch.broadcast_tensors(coef[..., 0, :], t)[0].shape,
                       dtype=t.dtype, device=t.device)
     for p in range(P - 1, -1, -1):
         out = out * t + coef[..., p, :]
