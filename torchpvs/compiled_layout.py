@@ -31,6 +31,7 @@ import numpy as np
 import torch
 
 from .basis import gauss_legendre
+from .compiled import horner
 from .compiled_load import cached_jit
 from .mechanics import Maps, PoseConstants, node_tables
 from .sections import Discretization, Layout, TubeTensors
@@ -66,13 +67,18 @@ def _poly_int(coef, j, t):
 
 
 @_jit
-def _poly(coef, j, c, t):
-    """``sum_p coef[j, c, p] t^p``, Horner from the leading coefficient (mechanics.poly)."""
-    P = coef.shape[-1]
-    out = coef[j, c, P - 1]
-    for p in range(P - 2, -1, -1):
-        out = out * t + coef[j, c, p]
-    return out
+def _partition(keep, out):
+    """``out[:] =`` the indices where ``keep`` holds, in order, then the others (a stable
+    argsort of ``~keep``), as many as ``out`` holds."""
+    i = 0
+    for k in range(keep.shape[0]):
+        if keep[k] and i < out.shape[0]:
+            out[i] = k
+            i += 1
+    for k in range(keep.shape[0]):
+        if not keep[k] and i < out.shape[0]:
+            out[i] = k
+            i += 1
 
 
 @_jit
@@ -170,26 +176,10 @@ def _maps_one(b, EI, GJ, coef, D, n, xq, xm, phi, tau, start, h, present, curved
     Q = xq.shape[0]
     G = xm.shape[0]
     nc = cidx.shape[1]
-    # compact sections: the active ones in backbone order, then the others (a stable argsort
-    # of ~active)
-    i = 0
-    for k in range(S_full):
-        if active[b, k] > 0.5 and i < S:
-            sec[b, i] = k
-            i += 1
-    for k in range(S_full):
-        if active[b, k] <= 0.5 and i < S:
-            sec[b, i] = k
-            i += 1
-    i = 0
-    for k in range(S_full):
-        if h[b, k] > 0.0 and i < Sp:
-            psec[b, i] = k
-            i += 1
-    for k in range(S_full):
-        if h[b, k] <= 0.0 and i < Sp:
-            psec[b, i] = k
-            i += 1
+    # compact sections: the active ones in backbone order, then the others; the pose's: the
+    # nonempty ones, then the others
+    _partition(active[b] > 0.5, sec[b])
+    _partition(h[b] > 0.0, psec[b])
     for j in range(N):
         cidx[b, j] = j
     for i in range(S):
@@ -215,7 +205,7 @@ def _maps_one(b, EI, GJ, coef, D, n, xq, xm, phi, tau, start, h, present, curved
             for j in range(N):
                 t = s - tau[b, j]
                 for c in range(3):
-                    ustar[b, i, q, j, c] = _poly(coef[b], j, c, t) * curved[b, k, j]
+                    ustar[b, i, q, j, c] = horner(coef[b], j, c, t) * curved[b, k, j]
                 EIw[b, i, q, j] = W[b, k, q] * (EI[b, j] * present[b, k, j])
                 GJw[b, i, q, j] = W[b, k, q] * (GJ[b, j] * present[b, k, j])
                 acc = EIw[b, i, q, j] if j == 0 else acc + EIw[b, i, q, j]
@@ -266,7 +256,7 @@ def _maps_one(b, EI, GJ, coef, D, n, xq, xm, phi, tau, start, h, present, curved
                 s = start[b, k] + 0.5 * (xm[g] + 1.0) * h[b, k]
                 t = s - tau[b, j]
                 for c in range(2):
-                    p_held[b, i, g, j, c] = _poly(coef[b], j, c, t) * curved[b, k, j] * held
+                    p_held[b, i, g, j, c] = horner(coef[b], j, c, t) * curved[b, k, j] * held
                 p_local[b, i, g, j] = (_poly_int(coef[b], j, t) - Z0) * pm
 
 
