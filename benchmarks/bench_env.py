@@ -151,7 +151,8 @@ def main() -> None:
     ap.add_argument("--robot", default="fig3_two_tube")
     ap.add_argument("--batches", type=int, nargs="+", default=[1, 16, 64])
     ap.add_argument("--steps", type=int, default=40, help="timed step calls per configuration")
-    ap.add_argument("--dummy", type=int, default=16, help="B of the DummyVecEnv comparison")
+    ap.add_argument("--dummy", type=int, default=16,
+                    help="B of the DummyVecEnv comparison (0: none)")
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--breakdown", action="store_true",
                     help="split one force-env step into its stages instead (see above)")
@@ -167,9 +168,10 @@ def main() -> None:
         rate1, ms1 = bench_single(args.robot, control, args.steps)
         print(f"{'gym.make single (' + control + ')':<34}{1:>5}{rate1:>15.1f}{ms1:>14.2f}"
               f"{'':>10}")
-        rated, msd = bench_dummy(args.robot, control, args.dummy, max(5, args.steps // 4))
-        print(f"{'DummyVecEnv (' + control + ')':<34}{args.dummy:>5}{rated:>15.1f}{msd:>14.2f}"
-              f"{'':>10}")
+        if args.dummy > 0:       # (--dummy 0: no DummyVecEnv row)
+            rated, msd = bench_dummy(args.robot, control, args.dummy, max(5, args.steps // 4))
+            print(f"{'DummyVecEnv (' + control + ')':<34}{args.dummy:>5}{rated:>15.1f}"
+                  f"{msd:>14.2f}{'':>10}")
         for B in args.batches:
             rate, ms, sub = bench_batched(args.robot, control, B, args.steps)
             print(f"{'CTRReachVecEnv (' + control + ')':<34}{B:>5}{rate:>15.1f}{ms:>14.2f}"
