@@ -18,6 +18,15 @@ motion of a direct warm solve at the step's end (what the environment's plant co
   snap of the model, which a controller avoids only by staying away from the fold;
 * no fold: the branch continues; the tip moved fast but continuously (a soft region near a
   fold) and the environment's jump test flagged it.
+
+Also printed: what a policy could have seen one step ahead. For the state before each snapped
+step and for every hundredth ordinary robot-step of the same episodes: the observation's
+stability margin (the smallest eigenvalue of the Jacobi-scaled Hessian in the coordinates)
+and the smallest eigenvalue of the actuator stiffness's rotation block ``dtau_alpha /
+dalpha`` [N·m/rad] (:func:`torchpvs.jacobians.actuator_stiffness`, unclipped; the
+environment clips ``K`` to its positive part for the carriage dynamics and does not observe
+it). The fraction of ordinary steps at or below each snapped step's value says how well the
+quantity would separate the two.
 """
 
 from __future__ import annotations
@@ -30,19 +39,26 @@ import torch
 import torchpvs
 
 
-def record_snaps(policy_path: str, episodes: int, seed: int, batch: int) -> list[tuple]:
-    """``(x0, q0, x1, tip0, tip1, margin0)`` of every snapped robot-step of the evaluation."""
+def record_snaps(policy_path: str, episodes: int, seed: int, batch: int
+                 ) -> tuple[list[tuple], list[tuple]]:
+    """``(snapped, ordinary)``: ``(x0, q0, x1, tip0, tip1, margin0)`` of every snapped
+    robot-step of the evaluation, and ``(x0, q0, margin0)`` of every hundredth other one."""
     import envs.dynamics as dyn
     from training.evaluate import load_policy, policy_env, rollout
 
-    rows = []
+    rows, ordinary = [], []
     run = dyn.RobotBatch._run
+    count = [0]
 
     def recording_run(self, n, propose, stiffness, accept=None):
         x0, q0, tip0, m0 = self.x.copy(), self.q.copy(), self.tip.copy(), self.margin.copy()
         flags = run(self, n, propose, stiffness, accept)
         for i in np.flatnonzero(flags.snapped):
             rows.append((x0[i], q0[i], self.x[i].copy(), tip0[i], self.tip[i].copy(), m0[i]))
+        for i in np.flatnonzero(~flags.snapped & ~flags.solver_failure):
+            count[0] += 1
+            if count[0] % 100 == 0:
+                ordinary.append((x0[i], q0[i], m0[i]))
         return flags
 
     dyn.RobotBatch._run = recording_run
@@ -54,7 +70,18 @@ def record_snaps(policy_path: str, episodes: int, seed: int, batch: int) -> list
         dyn.RobotBatch._run = run
     print(f"{policy_path}: {int(np.sum(res['snap']))} snapped episodes of {episodes}, "
           f"{len(rows)} snapped steps recorded")
-    return rows
+    return rows, ordinary
+
+
+def rotation_stiffness(scene, x: np.ndarray, q: np.ndarray, opts) -> float:
+    """Smallest eigenvalue [N·m/rad] of the actuator stiffness's rotation block at the
+    equilibrium of actuation ``x`` warm from coordinates ``q``."""
+    from torchpvs.jacobians import actuator_stiffness
+    N = scene.n_tubes
+    eq = torchpvs.solve(scene, insertion=x[:N], rotation=x[N:],
+                        initial=torch.as_tensor(q)[None], options=opts)
+    K = actuator_stiffness(eq)[0, N:, N:]
+    return float(torch.linalg.eigvalsh(0.5 * (K + K.T))[0])
 
 
 def main(argv=None) -> None:
@@ -71,7 +98,9 @@ def main(argv=None) -> None:
     opts = robots.ENV_SOLVER_OPTIONS
     N = scene.n_tubes
     with_fold = 0
-    rows = record_snaps(args.policy, args.episodes, args.seed, args.batch)
+    rows, ordinary = record_snaps(args.policy, args.episodes, args.seed, args.batch)
+    base_m = np.array([m for _, _, m in ordinary])
+    base_k = np.array([rotation_stiffness(scene, x, q, opts) for x, q, _ in ordinary])
     for x0, q0, x1, tip0, tip1, m0 in rows:
         start = torchpvs.solve(scene, insertion=x0[:N], rotation=x0[N:],
                                initial=torch.as_tensor(q0)[None], options=opts)
@@ -84,10 +113,16 @@ def main(argv=None) -> None:
         folds = [f"s = {f.s:.3f}: {1e3 * f.tip_jump:.1f} mm ({f.kind})" for f in cont.folds]
         with_fold += bool(folds)
         moved = 1e3 * float(np.linalg.norm(end.tip_position[0].numpy() - tip0))
-        print(f"margin before {m0:.3f}, env tip jump {1e3 * np.linalg.norm(tip1 - tip0):.1f} mm;"
-              f" folds on the step: {folds or 'none'}; direct warm solve: tip moved "
-              f"{moved:.1f} mm")
+        k0 = rotation_stiffness(scene, x0, q0, opts)
+        print(f"margin before {m0:.3f} (ordinary steps at or below: "
+              f"{np.mean(base_m <= m0):.0%}), rotation stiffness {k0:.2e} N·m/rad "
+              f"({np.mean(base_k <= k0):.0%}); env tip jump "
+              f"{1e3 * np.linalg.norm(tip1 - tip0):.1f} mm; folds on the step: "
+              f"{folds or 'none'}; direct warm solve: tip moved {moved:.1f} mm")
     print(f"{with_fold} of {len(rows)} snapped steps cross a fold of the model")
+    print(f"ordinary steps sampled: {len(ordinary)}; margin median {np.median(base_m):.3f}, "
+          f"rotation stiffness median {np.median(base_k):.2e} N·m/rad, 5th percentile "
+          f"{np.percentile(base_k, 5):.2e}")
 
 
 if __name__ == "__main__":
