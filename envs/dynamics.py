@@ -246,6 +246,9 @@ class RobotBatch:
         self.v = np.zeros((batch_size, 2 * N))
         self.g = np.zeros((batch_size, 2 * N))
         self.K = np.zeros((batch_size, 2 * N, 2 * N))
+        # the same stiffness before clipping (RobotState.stiffness): its negative directions
+        # are the torque-controlled instabilities that precede snaps (benchmarks/snap_causes)
+        self.K_unclipped = np.zeros((batch_size, 2 * N, 2 * N))
         self.tip = np.zeros((batch_size, 3))
         self.margin = np.zeros(batch_size)
         self.energy = np.zeros(batch_size)          # U*(x) [J], for the step acceptance
@@ -302,7 +305,7 @@ class RobotBatch:
         self._parked[idx] = False
         self.at_lower[idx], self.at_upper[idx] = lo, hi
         self.q[idx] = s.q[rows]
-        self.K[idx] = self._stiffness_of(eq, rows)
+        self.K[idx], self.K_unclipped[idx] = self._stiffness_of(eq, rows)
         return s.ok[rows]
 
     def compensation(self, direction: np.ndarray) -> np.ndarray:
@@ -324,12 +327,14 @@ class RobotBatch:
         g[far] = self._park_g[far]
         return g
 
-    def _stiffness_of(self, eq, rows) -> np.ndarray:
+    def _stiffness_of(self, eq, rows) -> tuple[np.ndarray, np.ndarray]:
+        """``(K_clipped, K)``: the symmetrized actuator stiffness ``dtau/dx`` of ``eq``'s
+        ``rows`` and its positive part (the implicit step's, non-finite entries zero)."""
         K = actuator_stiffness(eq, torch.as_tensor(rows)).numpy()
         K = 0.5 * (K + np.swapaxes(K, -1, -2))
         w, V = np.linalg.eigh(K)
-        K = (V * np.clip(w, 0.0, None)[..., None, :]) @ np.swapaxes(V, -1, -2)
-        return np.nan_to_num(K, nan=0.0, posinf=0.0, neginf=0.0)
+        Kc = (V * np.clip(w, 0.0, None)[..., None, :]) @ np.swapaxes(V, -1, -2)
+        return np.nan_to_num(Kc, nan=0.0, posinf=0.0, neginf=0.0), K
 
     # ------------------------------------------------------------------------------------------
     def n_substeps(self, tau: np.ndarray) -> np.ndarray:
@@ -426,7 +431,7 @@ class RobotBatch:
                                  | (self.margin <= 0.0))
         if stiffness:
             for eq, idx, rows in K_eq:
-                self.K[idx] = self._stiffness_of(eq, rows)
+                self.K[idx], self.K_unclipped[idx] = self._stiffness_of(eq, rows)
         stop, pair = self.contact_forces(self._impulse / self.model.control_period)
         return StepFlags(solver_failure=failure, snapped=snapped, tip_jump=jump, substeps=n,
                          stop_force=stop, contact_force=pair)

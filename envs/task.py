@@ -205,6 +205,11 @@ class RobotState:
             and ``G`` against the nominal robot (``env.robot``, what controllers know); ones
             without ``plant_scale``. For analysis.
         plant_tip_force: ``(B, 3)`` [N] the plant's unknown tip force. For analysis.
+        stiffness: ``(B, 2N, 2N)`` the actuator stiffness ``dtau/dx`` [N/m, N, N·m/rad]
+            (symmetrized, not clipped; the carriage dynamics use its positive part) of the
+            plant's equilibrium at the last force-control step or reset (joint-control steps
+            do not update it). A negative eigenvalue is a direction in which the robot is
+            unstable under constant actuator forces and torques: it precedes a snap.
     """
 
     x: np.ndarray
@@ -220,6 +225,7 @@ class RobotState:
     true_tip: np.ndarray | None = None
     plant_factors: np.ndarray | None = None
     plant_tip_force: np.ndarray | None = None
+    stiffness: np.ndarray | None = None
 
 
 ENV_ID_OF_CONTROL = {"force": "torchpvs/CTRReachForce-v0", "joint": "torchpvs/CTRReachJoint-v0"}
@@ -788,7 +794,8 @@ class ReachBatch:
                           damping=rb.damping.copy(), action_scale=self.robot.action_scale,
                           control_period=float(self.carriage.control_period),
                           true_tip=rb.tip.copy(), plant_factors=self.plants.factors.copy(),
-                          plant_tip_force=self.plants.tip_force.copy())
+                          plant_tip_force=self.plants.tip_force.copy(),
+                          stiffness=rb.K_unclipped.copy())
 
     def set_tolerance(self, tolerance: float) -> None:
         _check_tolerance(tolerance)

@@ -71,3 +71,40 @@ def test_state_is_frozen_and_holds_copies():
     s3 = env.state()
     assert not np.array_equal(s3.x, s2.x)
     np.testing.assert_array_equal(s2.x, before["x"])
+
+
+def test_state_stiffness_is_the_unclipped_actuator_stiffness():
+    """``state().stiffness`` is ``dtau/dx`` of the robot's equilibrium, negative directions
+    kept. References: finite differences of the actuation torque along the branch, and the
+    rotation invariance of an unloaded robot (turning every tube together stores no energy, so
+    ``K (0, 0, 1, 1) = 0``). On the Fig. 3 robot the inner tube's rotation stiffness
+    ``dtau_2/dalpha_2`` is positive at 150 deg and negative at 176 deg, past the torque's
+    maximum on the branch followed from 0 (a torque-controlled robot is unstable there), while
+    the margin of the coordinates' Hessian is still large."""
+    env = CTRReachEnv()
+    env.reset(seed=0)
+    rb, robot = env.task.robots, env.robot
+    D = [0.0987, 0.1645]
+    h = np.radians(0.05)
+    eq = None
+    signs = {}
+    for deg in range(120, 177, 2):       # follow the branch from 120 deg
+        x = np.array([[*D, 0.0, np.radians(deg)]])
+        eq = solve_batch(robot, x, initial=None if eq is None else eq.q)
+        if deg not in (150, 176):
+            continue
+        rb.set_state(np.array([0]), x, eq=eq, rows=np.array([0]))
+        s = env.state()
+        K = s.stiffness[0]
+        assert K.shape == (4, 4) and np.allclose(K, K.T)
+        np.testing.assert_allclose(K @ [0.0, 0.0, 1.0, 1.0], 0.0, atol=1e-9 * np.abs(K).max())
+        tau = [float(solve_batch(robot, x + [[0, 0, 0, d]], initial=eq.q).actuation_torques[0, 1])
+               for d in (-h, h)]
+        fd = (tau[1] - tau[0]) / (2 * h)
+        np.testing.assert_allclose(K[3, 3], fd, rtol=1e-4, atol=1e-7)
+        assert s.margin[0] > 0.2
+        signs[deg] = np.sign(K[3, 3])
+        # the clipped stiffness of the carriage dynamics is its positive part
+        w = np.linalg.eigvalsh(rb.K[0])
+        assert w.min() > -1e-12
+    assert signs == {150: 1.0, 176: -1.0}
