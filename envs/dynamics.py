@@ -328,8 +328,9 @@ class RobotBatch:
         return g
 
     def _stiffness_of(self, eq, rows) -> tuple[np.ndarray, np.ndarray]:
-        """``(K_clipped, K)``: the symmetrized actuator stiffness ``dtau/dx`` of ``eq``'s
-        ``rows`` and its positive part (the implicit step's, non-finite entries zero)."""
+        """``(K_clipped, K)`` of ``eq``'s ``rows``: ``K`` the symmetrized actuator stiffness
+        ``dtau/dx``, ``K_clipped`` its positive part (the implicit step's; non-finite entries
+        zero)."""
         K = actuator_stiffness(eq, torch.as_tensor(rows)).numpy()
         K = 0.5 * (K + np.swapaxes(K, -1, -2))
         w, V = np.linalg.eigh(K)

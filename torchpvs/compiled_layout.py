@@ -210,21 +210,22 @@ def _maps_one(b, EI, GJ, coef, D, n, xq, xm, phi, tau, start, h, present, curved
                 GJw[b, i, q, j] = W[b, k, q] * (GJ[b, j] * present[b, k, j])
                 acc = EIw[b, i, q, j] if j == 0 else acc + EIw[b, i, q, j]
             EIws[b, i, q] = acc
-        # the q-independent section blocks: bending A (x) I_2, torsion T_kj
+        # the q-independent section blocks: bending A (x) I_2 (the tubes' EI summed, as the
+        # eager sum_dim), torsion T_kj (GJw's node weights)
+        eis = 0.0
+        for j in range(N):
+            eis += EI[b, j] * present[b, k, j]
         for p in range(n):
             for r in range(n):
                 a = 0.0
                 for q in range(Q):
-                    eis = 0.0
-                    for j in range(N):
-                        eis += EI[b, j] * present[b, k, j]
                     a += W[b, k, q] * eis * phi[q, p] * phi[q, r]
                 Hsec[b, i, 0, p, 0, r] = a
                 Hsec[b, i, 1, p, 1, r] = a
                 for j in range(N):
                     t_ = 0.0
                     for q in range(Q):
-                        t_ += W[b, k, q] * (GJ[b, j] * present[b, k, j]) * phi[q, p] * phi[q, r]
+                        t_ += GJw[b, i, q, j] * phi[q, p] * phi[q, r]
                     Hsec[b, i, 2 + j, p, 2 + j, r] = t_
         # angle bases b_kj = d psi_j(start of k) / dq on the compact coordinates: D_j on the
         # guide twist w_j, h_l on the mean torsion of tube j in every earlier section l
