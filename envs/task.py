@@ -23,6 +23,11 @@ tanh(error / scale)   3      the error near the goal: ``tanh((goal - tip) / erro
                              saturate at +-1, the entry above still gives their direction)
 stability margin      1      ``tanh(lambda_min / margin_scale)``
 at limit              2N     lower and upper stroke-limit flags of each insertion carriage
+rotation stiffness    1      ``observe_stiffness`` only: ``tanh(k_rel / stiffness_scale)``, the
+                             smallest eigenvalue ``k_rel`` of the actuator stiffness's rotation
+                             block on relative rotations (:func:`relative_rotation_stiffness`);
+                             negative where the torque-controlled robot is unstable, which
+                             preceded every snap of the force agent (benchmarks/snap_causes.py)
 ====================  =====  ==================================================================
 
 Goals (float32, ``(4,)``): ``achieved_goal = (tip [m], snap flag)``, ``desired_goal = (goal [m],
@@ -53,9 +58,44 @@ from .plant import Plants, PlantVariation
 from .robots import Robot
 
 __all__ = ["ReachConfig", "ReachBatch", "RobotState", "RewardTerms", "OBS_BOUND",
-           "compute_reward", "reward_terms", "her_reward"]
+           "compute_reward", "reward_terms", "her_reward", "relative_rotation_stiffness",
+           "stiffness_scale"]
 
 OBS_BOUND = 10.0
+
+
+def relative_rotation_stiffness(K: np.ndarray) -> np.ndarray:
+    """``(B,)`` [N·m/rad] the smallest eigenvalue of the rotation block ``dtau_alpha/dalpha``
+    of the actuator stiffness ``K (B, 2N, 2N)`` (insertions first, then rotations; symmetrized
+    here) restricted to relative rotations, the directions orthogonal to turning every tube
+    together. That common rotation is rigid without a tip load (its eigenvalue is 0 up to
+    round-off and would mask the others); ``k_rel < 0`` is a relative rotation in which the
+    robot is unstable under constant torques, the instability that precedes a snap. For
+    ``N = 2`` it is ``v^T K_aa v`` with ``v = (1, -1)/sqrt(2)``; a one-tube robot has no
+    relative rotation and gets zeros. Non-finite ``K`` rows give NaN."""
+    K = np.asarray(K, dtype=np.float64)
+    if K.ndim != 3 or K.shape[-1] != K.shape[-2] or K.shape[-1] % 2:
+        raise ValueError(f"K must be (B, 2N, 2N), got shape {K.shape}")
+    N = K.shape[-1] // 2
+    if N == 1:
+        return np.zeros(K.shape[0])
+    R = K[:, N:, N:]
+    R = 0.5 * (R + np.swapaxes(R, -1, -2))
+    # an orthonormal basis of the complement of (1, ..., 1): the last N - 1 columns of a QR
+    # of [1 | I] (the first column spans the common rotation)
+    Q = np.linalg.qr(np.concatenate([np.ones((N, 1)), np.eye(N)], -1))[0][:, 1:N]
+    out = np.full(K.shape[0], np.nan)
+    ok = np.isfinite(R).all((-1, -2))
+    if ok.any():
+        out[ok] = np.linalg.eigvalsh(Q.T @ R[ok] @ Q)[:, 0]
+    return out
+
+
+def stiffness_scale(robot: Robot) -> float:
+    """[N·m/rad] the normalization of the rotation-stiffness observation entry: a quarter of
+    the robot's mean torque scale per radian (0.0365 for the Fig. 3 robot, where the median
+    ``k_rel`` over random force-control states is 0.033 and its maximum 0.072)."""
+    return 0.25 * float(np.mean(robot.torque_scale))
 
 
 @dataclass(frozen=True)
@@ -108,6 +148,11 @@ class ReachConfig:
             ``U(0, tip_force)`` [N] in a uniformly random direction, Gaussian noise of
             ``tip_noise`` [m] per axis on the measured tip (observation, ``achieved_goal``
             and the reward; ``is_success`` and ``info["distance"]`` use the true tip).
+        observe_stiffness: force control only. Append ``tanh(k_rel / stiffness_scale)`` to
+            the observation (last entry; :func:`relative_rotation_stiffness`,
+            :func:`stiffness_scale`): the actuator stiffness that the force step computes
+            anyway, whose negative relative-rotation direction preceded every snap of the
+            force agent. ``False`` (default): the observation the shipped agents read.
     """
 
     control: str = "force"
@@ -125,6 +170,7 @@ class ReachConfig:
     plant_scale: float = 0.0
     tip_force: float = 0.0
     tip_noise: float = 0.0
+    observe_stiffness: bool = False
 
     @property
     def plant(self) -> PlantVariation:
@@ -167,6 +213,12 @@ class ReachConfig:
         if self.compensation and self.control != "force":
             raise ValueError(f"compensation=True needs control='force' (joint control already "
                              f"holds the elastic load), got control={self.control!r}")
+        if not isinstance(self.observe_stiffness, (bool, np.bool_)):
+            raise ValueError(f"observe_stiffness must be True or False, got "
+                             f"{self.observe_stiffness!r}")
+        if self.observe_stiffness and self.control != "force":
+            raise ValueError(f"observe_stiffness=True needs control='force' (joint steps do not "
+                             f"compute the actuator stiffness), got control={self.control!r}")
         if not (_real(self.error_scale) and self.error_scale > 0):
             raise ValueError(f"error_scale must be a finite length > 0 [m], got "
                              f"{self.error_scale!r}")
@@ -383,7 +435,8 @@ class ReachBatch:
         # tip entries (the two goal-relative entries, 6 values, follow; relabel_observation)
         self.goal_entries = 2 * N + N + 2 * N + 2 * N + (
             2 * N if carriage.kind == "second_order" else 0) + 3
-        self.obs_size = self.goal_entries + 3 + 3 + 1 + 2 * N
+        self.obs_size = self.goal_entries + 3 + 3 + 1 + 2 * N + int(config.observe_stiffness)
+        self.stiffness_scale = stiffness_scale(robot)
         # goals: the tip within 2 x reach of the orifice, then the snap flag in [0, 1]
         goal_low = np.array([-2 * robot.reach] * 3 + [0.0], np.float32)
         goal_high = np.array([2 * robot.reach] * 3 + [1.0], np.float32)
@@ -754,6 +807,9 @@ class ReachBatch:
                   np.tanh(err / self.config.error_scale),
                   np.tanh(rb.margin / robot.margin_scale)[:, None],
                   rb.at_lower.astype(np.float64), rb.at_upper.astype(np.float64)]
+        if self.config.observe_stiffness:
+            k = relative_rotation_stiffness(rb.K_unclipped)
+            parts.append(np.tanh(k / self.stiffness_scale)[:, None])
         obs = np.clip(np.nan_to_num(np.concatenate(parts, -1), nan=0.0), -OBS_BOUND, OBS_BOUND)
         return {"observation": obs.astype(np.float32),
                 "achieved_goal": np.concatenate([tip, self.snap_flag[:, None]],

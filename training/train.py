@@ -287,8 +287,9 @@ def train(algo: str, env_id: str, hp: dict, *, steps: int | None = None, seed: i
     """Train ``algo`` on ``env_id`` with the (checked, overridden) entry ``hp``; returns the
     run folder. ``init_from``: a saved model (``.zip`` of the same algorithm, observation and
     action spaces) whose networks start the run (fine-tuning on another task; the replay
-    buffer starts empty). ``widen``: the entry's networks are wider than ``init_from``'s; start
-    from its function, widened (Net2WiderNet, :mod:`training.widen`; fresh optimizers)."""
+    buffer starts empty). ``widen``: the entry's networks are wider than ``init_from``'s, or its
+    observation has entries appended; start from its function, widened (Net2WiderNet and zero
+    weights for the new inputs, :mod:`training.widen`)."""
     import torch
     from stable_baselines3.common.vec_env import VecMonitor, VecNormalize
 
@@ -408,7 +409,8 @@ def main(argv: list[str] | None = None) -> int:
     p.add_argument("--init-from", default=None, metavar="MODEL_ZIP",
                    help="start from this saved model's networks (fine-tuning)")
     p.add_argument("--widen", action="store_true",
-                   help="with --init-from: this run's net_arch is wider than the model's; "
+                   help="with --init-from: this run's net_arch is wider than the model's, or "
+                        "its observation has entries appended (e.g. observe_stiffness:True); "
                         "start from its function, widened (Net2WiderNet, training/widen.py)")
     p.add_argument("--no-progress", action="store_true")
     args = p.parse_args(argv)

@@ -12,6 +12,14 @@ It works on SB3 policy state dicts, chain by chain: a chain is a stack of hidden
 hidden layer. SAC and TQC: the actor (``actor.latent_pi`` with heads ``actor.mu`` and
 ``actor.log_std``) and each critic (``critic.qf<i>``, its last linear layer the head); the target
 critics use their critic's unit mapping so that critic and target stay a matched pair.
+
+Inputs can grow too: where the target's first layers read more features than the source's, the
+extra features are taken to be appended at the end of the flattened observation (for SB3's
+``CombinedExtractor`` over a ``Dict`` space, whose keys Gymnasium sorts, a new last entry of
+``observation``) and get zero weights, so the function ignores them until training moves them
+(a new observation entry for a trained agent: ``ReachConfig.observe_stiffness``). The critics
+read ``[features, action]``: their new columns go between the two, at the actor's old input
+count.
 """
 from __future__ import annotations
 
@@ -41,12 +49,26 @@ def _chains(shapes: dict[str, torch.Size]) -> list[tuple[list[str], list[str]]]:
     return chains
 
 
+def _feature_count(sd: dict[str, torch.Tensor]) -> int | None:
+    """The number of observation features the networks read: the actor's input count (the
+    critics read them followed by the action); None without an actor."""
+    w = sd.get("actor.latent_pi.0.weight")
+    if w is None:
+        w = sd.get("actor.mu.weight")   # net_arch [] for the actor
+    return None if w is None else int(w.shape[1])
+
+
+def _insert_zero_columns(W: torch.Tensor, at: int, n: int) -> torch.Tensor:
+    """``W (out, in)`` with ``n`` zero columns inserted before column ``at``."""
+    return torch.cat([W[:, :at], W.new_zeros(W.shape[0], n), W[:, at:]], 1)
+
+
 def widen_state_dict(src: dict[str, torch.Tensor], dst: dict[str, torch.Tensor], *,
                      noise: float = 0.0, generator: torch.Generator | None = None
                      ) -> dict[str, torch.Tensor]:
     """``src``'s networks widened to ``dst``'s shapes (both SB3 SAC/TQC policy state dicts with
-    the same chains, depths, inputs and outputs; every hidden width in ``dst`` at least
-    ``src``'s). ``noise``: the copies' incoming weights and biases get Gaussian noise of this
+    the same chains, depths and outputs; every hidden width and the input count in ``dst`` at
+    least ``src``'s, extra inputs appended last with zero weights). ``noise``: the copies' incoming weights and biases get Gaussian noise of this
     fraction of their layer's weight standard deviation (0: exactly ``src``'s function).
     Returns a new state dict with ``dst``'s keys and shapes."""
     if noise < 0:
@@ -56,6 +78,19 @@ def widen_state_dict(src: dict[str, torch.Tensor], dst: dict[str, torch.Tensor],
                          f"(only in source: {sorted(set(src) - set(dst))[:4]}, only in target: "
                          f"{sorted(set(dst) - set(src))[:4]}); they must share depth and heads")
     out = {k: v.detach().clone() for k, v in src.items()}
+    at = _feature_count(src)
+    for hidden, _ in _chains({k: v.shape for k, v in src.items()}):
+        k = f"{hidden[0]}.weight"
+        extra = dst[k].shape[1] - out[k].shape[1]
+        if extra < 0:
+            raise ValueError(f"{hidden[0]}: the target reads fewer inputs ({dst[k].shape[1]}) "
+                             f"than the source ({out[k].shape[1]}); only appended inputs keep "
+                             "the function")
+        if extra:
+            if at is None:
+                raise ValueError("inputs grow but the policy has no actor to tell where its "
+                                 "features end")
+            out[k] = _insert_zero_columns(out[k], at, extra)
     # critic chain -> its hidden layers' unit maps and copy noise (the target reuses both)
     maps: dict[str, list] = {}
     for hidden, heads in _chains({k: v.shape for k, v in src.items()}):
@@ -91,15 +126,47 @@ def widen_state_dict(src: dict[str, torch.Tensor], dst: dict[str, torch.Tensor],
 
 
 def widen_into(model, path, *, noise: float = 0.01, seed: int = 0) -> None:
-    """Load the saved SAC/TQC model at ``path`` into ``model`` (same algorithm and spaces, hidden
-    layers at least as wide), widened by :func:`widen_state_dict`. The optimizers start afresh
-    (their moments have the old shapes); the entropy coefficient is the caller's to load."""
+    """Load the saved SAC/TQC model at ``path`` into ``model`` (same algorithm and action space,
+    hidden layers at least as wide, observations with the same entries or more appended last),
+    widened by :func:`widen_state_dict`. Where only inputs were appended (every hidden width
+    the same) the optimizers keep their Adam moments, zero for the new weights, so the first
+    updates are as small as a plain fine-tune's; a wider network's optimizers start afresh
+    (their moments have the old shapes). The entropy coefficient is the caller's to load."""
     from stable_baselines3.common.save_util import load_from_zip_file
 
     _, params, _ = load_from_zip_file(str(path), device="cpu", load_data=False)
     if params is None or "policy" not in params:
         raise ValueError(f"{path}: holds no policy networks")
     gen = torch.Generator().manual_seed(seed)
-    new = widen_state_dict(params["policy"], model.policy.state_dict(), noise=noise,
-                           generator=gen)
+    dst = model.policy.state_dict()
+    new = widen_state_dict(params["policy"], dst, noise=noise, generator=gen)
     model.policy.load_state_dict(new)
+    same_width = all(v.shape[0] == dst[k].shape[0] for k, v in params["policy"].items())
+    if same_width:
+        at = _feature_count(params["policy"])
+        for name in ("actor.optimizer", "critic.optimizer"):
+            if name in params:
+                _load_padded_optimizer(model, name, params[name], at)
+
+
+def _load_padded_optimizer(model, name: str, state: dict, at: int | None) -> None:
+    """Load an Adam state dict saved for the narrower-input networks into ``model``'s optimizer
+    ``name``: moments of the inserted input columns (before column ``at``, as in
+    :func:`widen_state_dict`) start at zero."""
+    obj = model
+    for part in name.split("."):
+        obj = getattr(obj, part)
+    params = [p for g in obj.param_groups for p in g["params"]]
+    state = {"state": {i: dict(s) for i, s in state["state"].items()},
+             "param_groups": state["param_groups"]}
+    for i, s in state["state"].items():
+        shape = params[int(i)].shape
+        for key in ("exp_avg", "exp_avg_sq"):
+            m = s.get(key)
+            if m is not None and m.shape != shape:
+                if (at is None or m.ndim != 2 or m.shape[0] != shape[0]
+                        or m.shape[1] > shape[1]):
+                    raise ValueError(f"{name}: parameter {i} moments {tuple(m.shape)} do not "
+                                     f"extend to {tuple(shape)} by appended inputs")
+                s[key] = _insert_zero_columns(m, at, shape[1] - m.shape[1])
+    obj.load_state_dict(state)

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import dataclasses
+import math
 
 import numpy as np
 import pytest
@@ -108,3 +109,76 @@ def test_state_stiffness_is_the_unclipped_actuator_stiffness():
         w = np.linalg.eigvalsh(rb.K[0])
         assert w.min() > -1e-12
     assert signs == {150: 1.0, 176: -1.0}
+
+
+def test_relative_rotation_stiffness_against_an_independent_basis():
+    """``relative_rotation_stiffness`` is the smallest eigenvalue of the rotation block on the
+    complement of the common rotation: checked against ``scipy.linalg.null_space``'s basis of
+    that complement (eigenvalues do not depend on the basis), its closed form ``v^T R v`` for
+    two tubes, and its invariances (the insertion block and a common-rotation stiffness
+    ``c 1 1^T`` do not change it)."""
+    from scipy.linalg import null_space
+
+    from envs.task import relative_rotation_stiffness
+    rng = np.random.default_rng(5)
+    for N in (2, 3, 4):
+        A = rng.normal(size=(6, 2 * N, 2 * N))
+        K = A + np.swapaxes(A, -1, -2)
+        P = null_space(np.ones((1, N)))                   # (N, N - 1)
+        ref = [np.linalg.eigvalsh(P.T @ k[N:, N:] @ P).min() for k in K]
+        got = relative_rotation_stiffness(K)
+        np.testing.assert_allclose(got, ref, rtol=1e-12, atol=1e-12)
+        K2 = K.copy()
+        K2[:, N:, N:] += 3.7 * np.ones((N, N))
+        K2[:, :N, :N] = 0.0
+        np.testing.assert_allclose(relative_rotation_stiffness(K2), ref, rtol=1e-12,
+                                   atol=1e-12)
+        if N == 2:
+            v = np.array([1.0, -1.0]) / math.sqrt(2.0)
+            np.testing.assert_allclose(got, [v @ k[2:, 2:] @ v for k in K], rtol=1e-12)
+    K = np.zeros((3, 4, 4))
+    K[1, 2, 3] = np.nan
+    out = relative_rotation_stiffness(K)
+    assert np.isnan(out[1]) and np.isfinite(out[[0, 2]]).all()
+    np.testing.assert_array_equal(relative_rotation_stiffness(np.ones((2, 2, 2))), 0.0)
+    with pytest.raises(ValueError, match=r"K must be \(B, 2N, 2N\)"):
+        relative_rotation_stiffness(np.zeros((2, 3, 3)))
+
+
+def test_the_stiffness_observation_entry_follows_the_torque_along_a_branch():
+    """``observe_stiffness=True`` appends ``tanh(k_rel / stiffness_scale)`` to the
+    observation. Reference: for an unloaded two-tube robot ``k_rel = 2 dtau_2/dalpha_2`` (the
+    common rotation is rigid, so ``K_aa (1, 1) = 0``), taken by finite differences of the
+    torque along the branch on the Fig. 3 robot: positive at 150 deg, negative at 176 deg,
+    past the torque's maximum, where the force agent's snaps begin."""
+    from envs.task import stiffness_scale
+    plain = CTRReachEnv(compensation=True)
+    env = CTRReachEnv(compensation=True, observe_stiffness=True)
+    env.reset(seed=0)
+    plain.reset(seed=0)
+    n = plain.observation_space["observation"].shape[0]
+    assert env.observation_space["observation"].shape == (n + 1,)
+    rb, robot = env.task.robots, env.robot
+    scale = stiffness_scale(robot)
+    assert scale == pytest.approx(0.25 * np.mean(robot.torque_scale))
+    D, h, eq, seen = [0.0987, 0.1645], np.radians(0.05), None, {}
+    for deg in range(120, 177, 2):
+        x = np.array([[*D, 0.0, np.radians(deg)]])
+        eq = solve_batch(robot, x, initial=None if eq is None else eq.q)
+        if deg not in (150, 176):
+            continue
+        rb.set_state(np.array([0]), x, eq=eq, rows=np.array([0]))
+        tau = [float(solve_batch(robot, x + [[0, 0, 0, d]], initial=eq.q).actuation_torques[0, 1])
+               for d in (-h, h)]
+        k_rel = 2.0 * (tau[1] - tau[0]) / (2 * h)
+        obs = env.task.observations()["observation"][0]
+        np.testing.assert_allclose(obs[-1], np.tanh(k_rel / scale), rtol=2e-4, atol=1e-6)
+        seen[deg] = float(np.sign(obs[-1]))
+    assert seen == {150: 1.0, 176: -1.0}
+
+
+def test_observe_stiffness_is_checked_by_name():
+    with pytest.raises(ValueError, match="observe_stiffness must be True or False"):
+        CTRReachEnv(observe_stiffness="yes")
+    with pytest.raises(ValueError, match="observe_stiffness=True needs control='force'"):
+        CTRReachEnv(control="joint", observe_stiffness=True)

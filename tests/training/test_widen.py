@@ -16,22 +16,25 @@ from training.widen import widen_state_dict
 ZOO_ENV = "torchpvs/CTRReachForce-v0"
 
 
-def _policies(src_arch, dst_arch, algo="tqc"):
-    """Two policies of the force env's spaces, with random weights."""
+def _policies(src_arch, dst_arch, algo="tqc", more_inputs=False):
+    """Two policies of the force env's spaces, with random weights, and observations of the
+    target's space (``more_inputs``: the target observes the rotation stiffness too)."""
     import gymnasium as gym
     if algo == "tqc":
         from sb3_contrib.tqc.policies import MultiInputPolicy
     else:
         from stable_baselines3.sac.policies import MultiInputPolicy
     env = gym.make(ZOO_ENV, max_episode_steps=5)
+    env_dst = gym.make(ZOO_ENV, max_episode_steps=5, observe_stiffness=more_inputs)
     torch.manual_seed(0)
-    make = lambda arch: MultiInputPolicy(env.observation_space, env.action_space,  # noqa: E731
-                                         lambda _: 1e-3, net_arch=arch)
-    src, dst = make(src_arch), make(dst_arch)
-    env.observation_space.seed(0)
+    make = lambda e, arch: MultiInputPolicy(e.observation_space, e.action_space,  # noqa: E731
+                                            lambda _: 1e-3, net_arch=arch)
+    src, dst = make(env, src_arch), make(env_dst, dst_arch)
+    env_dst.observation_space.seed(0)
     obs = {k: torch.stack([torch.as_tensor(sp.sample(), dtype=torch.float32) for _ in range(32)])
-           for k, sp in env.observation_space.spaces.items()}
+           for k, sp in env_dst.observation_space.spaces.items()}
     env.close()
+    env_dst.close()
     return src, dst, obs
 
 
@@ -60,6 +63,30 @@ def test_widening_keeps_the_function_exactly_without_noise(algo):
     for a, b in zip(_outputs(src, obs), _outputs(dst, obs), strict=True):
         assert a.shape == b.shape
         torch.testing.assert_close(b, a, rtol=1e-5, atol=1e-6)
+
+
+@pytest.mark.parametrize("dst_arch", [[16, 12], [40, 19]])
+def test_an_appended_observation_entry_starts_at_zero_weight(dst_arch):
+    """A target observing one more entry (appended last, ``observe_stiffness``) computes the
+    source's actions and Q values on the observation without it, whatever the new entry
+    reads: its weights are zero in the actor and between features and action in the critics
+    (a column appended after the action would read the action as the new feature)."""
+    src, dst, obs = _policies([16, 12], dst_arch, more_inputs=True)
+    n = src.actor.latent_pi[0].weight.shape[1]
+    assert dst.actor.latent_pi[0].weight.shape[1] == n + 1
+    dst.load_state_dict(widen_state_dict(src.state_dict(), dst.state_dict(), noise=0.0))
+    short = {**obs, "observation": obs["observation"][:, :-1]}
+    for value in (0.0, -1.0, 5.0):
+        obs["observation"][:, -1] = value
+        for a, b in zip(_outputs(src, short), _outputs(dst, obs), strict=True):
+            torch.testing.assert_close(b, a, rtol=1e-5, atol=1e-6)
+    # the new column sits at the actor's old input count in every first layer
+    sd = dst.state_dict()
+    for k in ("actor.latent_pi.0.weight", "critic.qf0.0.weight", "critic_target.qf1.0.weight"):
+        assert torch.count_nonzero(sd[k][:, n]) == 0, k
+        assert torch.count_nonzero(sd[k][:, n - 1]) > 0, k
+    with pytest.raises(ValueError, match="fewer inputs"):
+        widen_state_dict(dst.state_dict(), src.state_dict())
 
 
 def test_a_target_critic_keeps_its_critics_unit_mapping():
@@ -129,3 +156,43 @@ def test_a_run_started_widened_keeps_the_source_agent_and_its_entropy(tmp_path):
     assert json.loads((run / "model.json").read_text())["widened"] is True
     with pytest.raises(SystemExit):
         train.main(["--algo", "sac", "--env", ZOO_ENV, "--widen"])
+
+
+def test_a_run_with_an_appended_entry_keeps_the_agent_and_its_adam_moments(tmp_path):
+    """train(..., widen=True) on an env observing one more entry: the run starts from the
+    saved agent's function and keeps its optimizers' Adam moments (zero for the new weights),
+    so its first updates are a plain fine-tune's."""
+    from stable_baselines3.common.save_util import load_from_zip_file
+    hp = train.load_hyperparams("sac", ZOO_ENV)
+    hp = {**hp, "n_envs": 2, "learning_starts": 50, "buffer_size": 1000, "batch_size": 32,
+          "env_kwargs": {**hp.get("env_kwargs", {}), "max_episode_steps": 20},
+          "policy_kwargs": "dict(net_arch=[16, 16])"}
+    first = train.train("sac", ZOO_ENV, hp, steps=100, seed=1, out=tmp_path / "a",
+                        progress=False, eval_freq=0, eval_episodes=0)
+    more = {**hp, "learning_starts": 10**6,
+            "env_kwargs": {**hp["env_kwargs"], "observe_stiffness": True}}
+    run = train.train("sac", ZOO_ENV, more, steps=20, seed=2, out=tmp_path / "b",
+                      progress=False, eval_freq=0, eval_episodes=0,
+                      init_from=first / "model.zip", widen=True)
+    (_, pa, _), (_, pb, _) = (load_from_zip_file(r / "model.zip", device="cpu")
+                              for r in (first, run))
+    n = pa["policy"]["actor.latent_pi.0.weight"].shape[1]
+    for name, first_layer in (("actor.optimizer", "actor.latent_pi.0.weight"),
+                              ("critic.optimizer", "critic.qf0.0.weight")):
+        a, b = pa[name]["state"], pb[name]["state"]
+        assert a and set(a) == set(b)
+        for i in a:
+            for key in ("exp_avg", "exp_avg_sq"):
+                ma, mb = a[i][key], b[i][key]
+                if ma.shape == mb.shape:
+                    assert torch.equal(ma, mb), (name, i, key)
+                else:   # the first layer: one zero column at the old feature count
+                    assert mb.shape == (ma.shape[0], ma.shape[1] + 1)
+                    assert torch.equal(mb[:, n], torch.zeros(ma.shape[0]))
+                    assert torch.equal(torch.cat([mb[:, :n], mb[:, n + 1:]], 1), ma)
+        assert pb["policy"][first_layer].shape[1] == pa["policy"][first_layer].shape[1] + 1
+    src, dst, obs = _policies([16, 16], [16, 16], "sac", more_inputs=True)
+    src.load_state_dict(pa["policy"])
+    dst.load_state_dict(pb["policy"])
+    short = {**obs, "observation": obs["observation"][:, :-1]}
+    torch.testing.assert_close(_outputs(dst, obs)[0], _outputs(src, short)[0])
