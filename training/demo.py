@@ -114,7 +114,7 @@ def main(argv: list[str] | None = None) -> int:
 
     import envs
     from training.controllers import OperationalSpaceController, PlanThenServoController
-    from training.evaluate import load_policy, rollout, summarize
+    from training.evaluate import load_policy, policy_env, rollout, summarize
 
     out = Path(args.output_dir)
     venv = envs.CTRReachVecEnv(args.goals, control="force")
@@ -131,9 +131,10 @@ def main(argv: list[str] | None = None) -> int:
         comp = bool((info.get("env_kwargs") or {}).get("compensation", False))
         label = (f"{algo} residual on {residual.get('base', 'osc').upper()}" if residual
                  else f"{algo}+HER, model-free" + (" (compensated)" if comp else ""))
-        own = venv if not comp else envs.CTRReachVecEnv(args.goals, control="force",
-                                                        compensation=True)
         try:
+            # the options that shape its actions and observation (compensation,
+            # observe_stiffness, ...) from its .json, as training.evaluate does
+            own = policy_env(path, args.goals)[0] if meta.exists() else venv
             policies[label] = (load_policy(path, own), own)
         except ValueError as e:  # e.g. trained on an older observation layout
             print(f"cannot load {path} ({str(e).splitlines()[0][:200]}): skipped")
