@@ -31,8 +31,9 @@ rotation stiffness    1      ``observe_stiffness`` only: ``tanh(k_rel / stiffnes
 ====================  =====  ==================================================================
 
 Goals (float32, ``(4,)``): ``achieved_goal = (tip [m], snap flag)``, ``desired_goal = (goal [m],
-0)``. The snap flag is 1 in the observation that follows a penalized snap (``snap_terminated``)
-and 0 otherwise; :func:`compute_reward` adds ``snap_penalty`` where the ACHIEVED flag is 1 and
+0)``. The snap flag is 1 in the observation that follows a penalized snap (``snap_terminated``),
+``UNSTABLE_FLAG`` (0.5) after a statically unstable step when ``stiffness_penalty`` is on
+(:class:`ReachConfig`; the penalty is recomputed from it like the snap's), and 0 otherwise; :func:`compute_reward` adds ``snap_penalty`` where the ACHIEVED flag is 1 and
 measures the distance on the first three entries only (a relabelled desired goal may carry a 1:
 it is ignored). The flag rides in ``achieved_goal`` because SB3's ``HerReplayBuffer`` keeps
 the goals of every stored transition but, by default (``copy_info_dict=False``), not its
@@ -59,9 +60,16 @@ from .robots import Robot
 
 __all__ = ["ReachConfig", "ReachBatch", "RobotState", "RewardTerms", "OBS_BOUND",
            "compute_reward", "reward_terms", "her_reward", "relative_rotation_stiffness",
-           "stiffness_scale"]
+           "stiffness_scale", "UNSTABLE_FLAG", "STIFFNESS_HAZARD"]
 
 OBS_BOUND = 10.0
+#: ``achieved_goal[3]`` of a step that ends statically unstable (``stiffness_penalty``); a
+#: penalized snap reads 1, any other step 0
+UNSTABLE_FLAG = 0.5
+#: a step is statically unstable where ``k_rel < STIFFNESS_HAZARD * stiffness_scale``: below
+#: the round-off of the rigid common rotation (a quarter of random force-control states read
+#: ``k_rel = 0`` to 1e-12) and the shallow negative values of states far from any fold
+STIFFNESS_HAZARD = -0.01
 
 
 def relative_rotation_stiffness(K: np.ndarray) -> np.ndarray:
@@ -153,6 +161,13 @@ class ReachConfig:
             :func:`stiffness_scale`): the actuator stiffness that the force step computes
             anyway, whose negative relative-rotation direction preceded every snap of the
             force agent. ``False`` (default): the observation the shipped agents read.
+        stiffness_penalty: force control only. A reward (finite, <= 0; default 0: off) added
+            at every step that ends statically unstable under torque control, its relative
+            rotation stiffness ``k_rel`` below ``STIFFNESS_HAZARD * stiffness_scale``
+            (:func:`relative_rotation_stiffness`), the state that preceded every snap of the
+            force agent: a dense signal where the snap penalty is rare. Such a step's
+            ``achieved_goal[3]`` reads ``UNSTABLE_FLAG`` (0.5; 1 is a penalized snap), so
+            that :func:`compute_reward` recomputes the penalty for relabelled goals.
     """
 
     control: str = "force"
@@ -171,6 +186,7 @@ class ReachConfig:
     tip_force: float = 0.0
     tip_noise: float = 0.0
     observe_stiffness: bool = False
+    stiffness_penalty: float = 0.0
 
     @property
     def plant(self) -> PlantVariation:
@@ -218,6 +234,12 @@ class ReachConfig:
                              f"{self.observe_stiffness!r}")
         if self.observe_stiffness and self.control != "force":
             raise ValueError(f"observe_stiffness=True needs control='force' (joint steps do not "
+                             f"compute the actuator stiffness), got control={self.control!r}")
+        if not (_real(self.stiffness_penalty) and self.stiffness_penalty <= 0):
+            raise ValueError(f"stiffness_penalty must be a finite number <= 0 (a reward added "
+                             f"at a statically unstable step), got {self.stiffness_penalty!r}")
+        if self.stiffness_penalty != 0 and self.control != "force":
+            raise ValueError(f"stiffness_penalty needs control='force' (joint steps do not "
                              f"compute the actuator stiffness), got control={self.control!r}")
         if not (_real(self.error_scale) and self.error_scale > 0):
             raise ValueError(f"error_scale must be a finite length > 0 [m], got "
@@ -312,24 +334,29 @@ def _real(v) -> bool:
 class RewardTerms(NamedTuple):
     """The parts of a reward (:func:`reward_terms`), each ``(...,)`` float64; the reward is
     ``(distance + snap).astype(float32)``. The step ``info`` reports them as
-    ``reward_distance`` and ``reward_snap``.
+    ``reward_distance``, ``reward_snap`` and ``reward_stiffness``.
 
     Attributes:
         distance: the goal term: ``"sparse"`` ``-1`` outside the tolerance, ``0`` inside;
             ``"dense"`` ``-d / dense_scale``, plus ``1`` inside; ``"shaped"`` the sparse term
             minus ``shaping_weight * min(d / dense_scale, 1)`` (``d`` [m] the distance of the
             goals' positions).
-        snap: ``snap_penalty`` where the snap flag is set (the achieved goal's 4th entry or
-            ``snapped``), else ``0``.
+        snap: ``snap_penalty`` where the snap flag is set (the achieved goal's 4th entry is
+            1, or ``snapped``), else ``0``.
+        stiffness: ``stiffness_penalty`` where the step ended statically unstable and did not
+            snap (the achieved goal's 4th entry is ``UNSTABLE_FLAG``, or ``unstable``), else
+            ``0``.
     """
 
     distance: np.ndarray
     snap: np.ndarray
+    stiffness: np.ndarray
 
 
 def reward_terms(achieved_goal, desired_goal, tolerance: float, kind: str,
                  dense_scale: float, snapped=None, snap_penalty: float = 0.0,
-                 shaping_weight: float = 0.5) -> tuple[np.ndarray, RewardTerms]:
+                 shaping_weight: float = 0.5, unstable=None,
+                 stiffness_penalty: float = 0.0) -> tuple[np.ndarray, RewardTerms]:
     """:func:`compute_reward` and its parts: ``(reward (...,) float32, RewardTerms)``."""
     ag = np.asarray(achieved_goal, np.float64)
     dg = np.asarray(desired_goal, np.float64)
@@ -341,24 +368,32 @@ def reward_terms(achieved_goal, desired_goal, tolerance: float, kind: str,
         r = -(~inside).astype(np.float64)
         if kind == "shaped":
             r = r - shaping_weight * np.minimum(d / dense_scale, 1.0)
-    flag = ag[..., 3] > 0.5 if ag.shape[-1] == 4 else np.zeros(d.shape, dtype=bool)
+    level = ag[..., 3] if ag.shape[-1] == 4 else np.zeros(d.shape)
+    flag = level > 0.75
     if snapped is not None:
         flag = flag | np.asarray(snapped, dtype=bool)
+    hazard = np.abs(level - UNSTABLE_FLAG) < 0.25
+    if unstable is not None:
+        hazard = hazard | np.asarray(unstable, dtype=bool)
     snap = snap_penalty * flag
-    return (r + snap).astype(np.float32), RewardTerms(distance=r, snap=snap)
+    stiff = stiffness_penalty * (hazard & ~flag)
+    return (r + snap + stiff).astype(np.float32), RewardTerms(distance=r, snap=snap,
+                                                              stiffness=stiff)
 
 
 def compute_reward(achieved_goal, desired_goal, tolerance: float, kind: str,
                    dense_scale: float, snapped=None, snap_penalty: float = 0.0,
-                   shaping_weight: float = 0.5) -> np.ndarray:
+                   shaping_weight: float = 0.5, unstable=None,
+                   stiffness_penalty: float = 0.0) -> np.ndarray:
     """Vectorized reward over the last axis -> ``(...,)`` float32.
 
     Goals are ``(..., 3)`` positions [m] or the environments' ``(..., 4)`` goals whose 4th
-    entry is the snap flag: the distance uses the positions, the penalty is added where the
-    achieved flag is set or ``snapped`` (e.g. from ``info``) is true. Its parts:
+    entry is the snap flag: the distance uses the positions, the snap penalty is added where
+    the achieved flag is 1 or ``snapped`` (e.g. from ``info``) is true, the stiffness penalty
+    where it is ``UNSTABLE_FLAG`` or ``unstable`` is true (and no snap). Its parts:
     :func:`reward_terms`."""
     return reward_terms(achieved_goal, desired_goal, tolerance, kind, dense_scale, snapped,
-                        snap_penalty, shaping_weight)[0]
+                        snap_penalty, shaping_weight, unstable, stiffness_penalty)[0]
 
 
 def info_field(info, key: str, shape) -> np.ndarray | None:
@@ -380,7 +415,8 @@ def her_reward(task: ReachBatch, achieved_goal, desired_goal, info) -> np.ndarra
     snapped = info_field(info, "snap_terminated", np.shape(achieved_goal)[:-1])
     c = task.config
     return compute_reward(achieved_goal, desired_goal, task.tolerance, c.reward, c.dense_scale,
-                          snapped, c.snap_penalty, c.shaping_weight)
+                          snapped, c.snap_penalty, c.shaping_weight,
+                          stiffness_penalty=c.stiffness_penalty)
 
 
 class ReachBatch:
@@ -755,9 +791,13 @@ class ReachBatch:
         failure = flags.solver_failure
         d = np.linalg.norm(self.robots.tip - self.goal, axis=-1)
         snap_term = snapped & (self.config.snap_mode == "terminate")
-        self.snap_flag = snap_term.astype(np.float64)
+        unstable = np.zeros(self.B, dtype=bool)
+        if self.config.stiffness_penalty != 0:
+            k = relative_rotation_stiffness(self.robots.K_unclipped)
+            unstable = (k < STIFFNESS_HAZARD * self.stiffness_scale) & ~snap_term
+        self.snap_flag = np.where(snap_term, 1.0, np.where(unstable, UNSTABLE_FLAG, 0.0))
         self._measure(np.arange(self.B))
-        reward, terms = self._get_rew(snap_term)
+        reward, terms = self._get_rew(snap_term, unstable)
         infos = {
             "is_success": self._goal_distance32() <= self.tolerance,
             "distance": d,
@@ -776,20 +816,23 @@ class ReachBatch:
             "stop_force": flags.stop_force,
             "reward_distance": terms.distance,
             "reward_snap": terms.snap,
+            "reward_stiffness": terms.stiffness,
+            "unstable": unstable,
         }
         terminated = snap_term & ~failure
         truncated = failure
         return reward, terminated, truncated, infos
 
-    def _get_rew(self, snap_term: np.ndarray) -> tuple[np.ndarray, RewardTerms]:
+    def _get_rew(self, snap_term: np.ndarray,
+                 unstable: np.ndarray | None = None) -> tuple[np.ndarray, RewardTerms]:
         """The step reward ``(B,)`` float32 and its :class:`RewardTerms`, from the float32
         goals of the observation (the measured tip): the values ``compute_reward`` gets back
-        from a replay buffer (float64 goals differ in the 8th digit), with the penalty where
-        ``snap_term`` (a terminating snap this step)."""
+        from a replay buffer (float64 goals differ in the 8th digit), with the penalties where
+        ``snap_term`` (a terminating snap this step) and ``unstable``."""
         c = self.config
         return reward_terms(self.measured_tip.astype(np.float32), self.goal.astype(np.float32),
                             self.tolerance, c.reward, c.dense_scale, snap_term, c.snap_penalty,
-                            c.shaping_weight)
+                            c.shaping_weight, unstable, c.stiffness_penalty)
 
     # -- observations -------------------------------------------------------------------------
     def observations(self) -> dict[str, np.ndarray]:

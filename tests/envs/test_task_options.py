@@ -214,3 +214,46 @@ def test_shaped_reward_is_the_sparse_reward_plus_a_bounded_pull():
 def test_shaping_weight_is_checked_by_name(bad):
     with pytest.raises(ValueError, match="shaping_weight"):
         envs.ReachConfig(reward="shaped", shaping_weight=bad)
+
+
+def test_stiffness_penalty_marks_unstable_steps_and_her_recomputes_it():
+    """``stiffness_penalty``: a step that ends with the relative rotation stiffness below
+    ``STIFFNESS_HAZARD * stiffness_scale`` adds the penalty, flags ``achieved_goal[3] = 0.5``
+    and ``compute_reward`` of the returned goals gives the step reward (what HER recomputes).
+    Reference state: the Fig. 3 robot at ``D = (98.7, 164.5) mm`` with the inner tube turned
+    176 deg along the branch from 120 deg, where ``dtau_2/dalpha_2 < 0`` (finite differences
+    in tests/envs/test_state.py); at 150 deg it is stable and nothing is added."""
+    from envs.robots import solve_batch
+    from envs.task import STIFFNESS_HAZARD, UNSTABLE_FLAG, relative_rotation_stiffness
+    env = CTRReachEnv(compensation=True, reward="shaped", dense_scale=3e-3,
+                      stiffness_penalty=-2.0)
+    env.reset(seed=0)
+    rb, robot = env.task.robots, env.robot
+    D, eq, seen = [0.0987, 0.1645], None, {}
+    for deg in range(120, 177, 2):
+        x = np.array([[*D, 0.0, np.radians(deg)]])
+        eq = solve_batch(robot, x, initial=None if eq is None else eq.q)
+        if deg not in (150, 176):
+            continue
+        rb.set_state(np.array([0]), x, eq=eq, rows=np.array([0]))
+        obs, r, term, trunc, info = env.step(np.zeros(4, np.float32))
+        k = relative_rotation_stiffness(env.state().stiffness)[0]
+        unstable = k < STIFFNESS_HAZARD * env.task.stiffness_scale
+        assert bool(info["unstable"]) == unstable and not info["snapped"]
+        assert obs["achieved_goal"][3] == (UNSTABLE_FLAG if unstable else 0.0)
+        assert info["reward_stiffness"] == (-2.0 if unstable else 0.0)
+        assert r == pytest.approx(info["reward_distance"] + info["reward_snap"]
+                                  + info["reward_stiffness"], abs=1e-6)
+        assert r == env.compute_reward(obs["achieved_goal"], obs["desired_goal"], info)
+        seen[deg] = unstable
+    assert seen == {150: False, 176: True}
+    # the flag alone carries it (HER relabels goals, not infos); a snap is not also penalized
+    ag = np.array([[0.0, 0.0, 0.1, 0.0], [0.0, 0.0, 0.1, UNSTABLE_FLAG], [0.0, 0.0, 0.1, 1.0]])
+    dg = np.array([[0.0, 0.0, 0.1, 0.0]] * 3)
+    np.testing.assert_allclose(env.compute_reward(ag, dg, {}), [0.0, -2.0, -60.0])
+    off = CTRReachEnv(compensation=True)
+    np.testing.assert_allclose(off.compute_reward(ag, dg, {}), [0.0, 0.0, -60.0])
+    with pytest.raises(ValueError, match="stiffness_penalty must be a finite number <= 0"):
+        CTRReachEnv(stiffness_penalty=1.0)
+    with pytest.raises(ValueError, match="stiffness_penalty needs control='force'"):
+        CTRReachEnv(control="joint", stiffness_penalty=-1.0)
