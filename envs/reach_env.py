@@ -71,8 +71,10 @@ class CTRReachEnv(gym.Env):
     (``> 0`` at the nesting stop ``D_j = D_{j-1}``, ``< 0`` at the tip-order stop, ``0`` apart)
     and ``stop_force (N,)`` the force of the stroke ends on each insertion carriage along
     ``+D`` (``> 0`` at the lower end). Both are zero under joint control. The reward's parts
-    (:class:`~envs.task.RewardTerms`): ``reward_distance`` (the goal term above) and
-    ``reward_snap`` (``snap_penalty`` at a terminating snap, else 0); they sum to the reward.
+    (:class:`~envs.task.RewardTerms`): ``reward_distance`` (the goal term above),
+    ``reward_snap`` (``snap_penalty`` at a terminating snap, else 0) and ``reward_stiffness``
+    (``stiffness_penalty`` at a step that ends statically unstable, ``unstable``, else 0);
+    they sum to the reward.
     """
 
     metadata = {"render_modes": ["rgb_array", "human"], "render_fps": 10}
