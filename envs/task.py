@@ -33,9 +33,10 @@ rotation stiffness    1      ``observe_stiffness`` only: ``tanh(k_rel / stiffnes
 Goals (float32, ``(4,)``): ``achieved_goal = (tip [m], snap flag)``, ``desired_goal = (goal [m],
 0)``. The snap flag is 1 in the observation that follows a penalized snap (``snap_terminated``),
 ``UNSTABLE_FLAG`` (0.5) after a statically unstable step when ``stiffness_penalty`` is on
-(:class:`ReachConfig`; the penalty is recomputed from it like the snap's), and 0 otherwise; :func:`compute_reward` adds ``snap_penalty`` where the ACHIEVED flag is 1 and
-measures the distance on the first three entries only (a relabelled desired goal may carry a 1:
-it is ignored). The flag rides in ``achieved_goal`` because SB3's ``HerReplayBuffer`` keeps
+(:class:`ReachConfig`; the penalty is recomputed from it like the snap's), and 0 otherwise;
+:func:`compute_reward` adds ``snap_penalty`` where the ACHIEVED flag is 1 and measures the
+distance on the first three entries only (a relabelled desired goal may carry a 1: it is
+ignored). The flag rides in ``achieved_goal`` because SB3's ``HerReplayBuffer`` keeps
 the goals of every stored transition but, by default (``copy_info_dict=False``), not its
 ``info``: with the flag in ``info`` a snap step relabelled with the goal it reached read reward
 0 and done, a rewarded escape. Measured sampling cost of the alternatives

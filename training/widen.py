@@ -68,8 +68,9 @@ def widen_state_dict(src: dict[str, torch.Tensor], dst: dict[str, torch.Tensor],
                      ) -> dict[str, torch.Tensor]:
     """``src``'s networks widened to ``dst``'s shapes (both SB3 SAC/TQC policy state dicts with
     the same chains, depths and outputs; every hidden width and the input count in ``dst`` at
-    least ``src``'s, extra inputs appended last with zero weights). ``noise``: the copies' incoming weights and biases get Gaussian noise of this
-    fraction of their layer's weight standard deviation (0: exactly ``src``'s function).
+    least ``src``'s, extra inputs appended last with zero weights). ``noise``: the copies'
+    incoming weights and biases get Gaussian noise of this fraction of their layer's weight
+    standard deviation (0: exactly ``src``'s function).
     Returns a new state dict with ``dst``'s keys and shapes."""
     if noise < 0:
         raise ValueError(f"noise: must be >= 0, got {noise}")
