@@ -74,7 +74,7 @@ def test_state_is_frozen_and_holds_copies():
     np.testing.assert_array_equal(s2.x, before["x"])
 
 
-def test_state_stiffness_is_the_unclipped_actuator_stiffness():
+def test_state_stiffness_is_the_unclipped_actuator_stiffness(on_fold_branch):
     """``state().stiffness`` is ``dtau/dx`` of the robot's equilibrium, negative directions
     kept. References: finite differences of the actuation torque along the branch, and the
     rotation invariance of an unloaded robot (turning every tube together stores no energy, so
@@ -85,16 +85,9 @@ def test_state_stiffness_is_the_unclipped_actuator_stiffness():
     env = CTRReachEnv()
     env.reset(seed=0)
     rb, robot = env.task.robots, env.robot
-    D = [0.0987, 0.1645]
     h = np.radians(0.05)
-    eq = None
     signs = {}
-    for deg in range(120, 177, 2):       # follow the branch from 120 deg
-        x = np.array([[*D, 0.0, np.radians(deg)]])
-        eq = solve_batch(robot, x, initial=None if eq is None else eq.q)
-        if deg not in (150, 176):
-            continue
-        rb.set_state(np.array([0]), x, eq=eq, rows=np.array([0]))
+    for deg, x, eq in on_fold_branch(env):
         s = env.state()
         K = s.stiffness[0]
         assert K.shape == (4, 4) and np.allclose(K, K.T)
@@ -145,7 +138,7 @@ def test_relative_rotation_stiffness_against_an_independent_basis():
         relative_rotation_stiffness(np.zeros((2, 3, 3)))
 
 
-def test_the_stiffness_observation_entry_follows_the_torque_along_a_branch():
+def test_the_stiffness_observation_entry_follows_the_torque_along_a_branch(on_fold_branch):
     """``observe_stiffness=True`` appends ``tanh(k_rel / stiffness_scale)`` to the
     observation. Reference: for an unloaded two-tube robot ``k_rel = 2 dtau_2/dalpha_2`` (the
     common rotation is rigid, so ``K_aa (1, 1) = 0``), taken by finite differences of the
@@ -158,16 +151,11 @@ def test_the_stiffness_observation_entry_follows_the_torque_along_a_branch():
     plain.reset(seed=0)
     n = plain.observation_space["observation"].shape[0]
     assert env.observation_space["observation"].shape == (n + 1,)
-    rb, robot = env.task.robots, env.robot
+    robot = env.robot
     scale = stiffness_scale(robot)
     assert scale == pytest.approx(0.25 * np.mean(robot.torque_scale))
-    D, h, eq, seen = [0.0987, 0.1645], np.radians(0.05), None, {}
-    for deg in range(120, 177, 2):
-        x = np.array([[*D, 0.0, np.radians(deg)]])
-        eq = solve_batch(robot, x, initial=None if eq is None else eq.q)
-        if deg not in (150, 176):
-            continue
-        rb.set_state(np.array([0]), x, eq=eq, rows=np.array([0]))
+    h, seen = np.radians(0.05), {}
+    for deg, x, eq in on_fold_branch(env):
         tau = [float(solve_batch(robot, x + [[0, 0, 0, d]], initial=eq.q).actuation_torques[0, 1])
                for d in (-h, h)]
         k_rel = 2.0 * (tau[1] - tau[0]) / (2 * h)

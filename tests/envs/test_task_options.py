@@ -216,26 +216,19 @@ def test_shaping_weight_is_checked_by_name(bad):
         envs.ReachConfig(reward="shaped", shaping_weight=bad)
 
 
-def test_stiffness_penalty_marks_unstable_steps_and_her_recomputes_it():
+def test_stiffness_penalty_marks_unstable_steps_and_her_recomputes_it(on_fold_branch):
     """``stiffness_penalty``: a step that ends with the relative rotation stiffness below
     ``STIFFNESS_HAZARD * stiffness_scale`` adds the penalty, flags ``achieved_goal[3] = 0.5``
     and ``compute_reward`` of the returned goals gives the step reward (what HER recomputes).
     Reference state: the Fig. 3 robot at ``D = (98.7, 164.5) mm`` with the inner tube turned
     176 deg along the branch from 120 deg, where ``dtau_2/dalpha_2 < 0`` (finite differences
     in tests/envs/test_state.py); at 150 deg it is stable and nothing is added."""
-    from envs.robots import solve_batch
     from envs.task import STIFFNESS_HAZARD, UNSTABLE_FLAG, relative_rotation_stiffness
     env = CTRReachEnv(compensation=True, reward="shaped", dense_scale=3e-3,
                       stiffness_penalty=-2.0)
     env.reset(seed=0)
-    rb, robot = env.task.robots, env.robot
-    D, eq, seen = [0.0987, 0.1645], None, {}
-    for deg in range(120, 177, 2):
-        x = np.array([[*D, 0.0, np.radians(deg)]])
-        eq = solve_batch(robot, x, initial=None if eq is None else eq.q)
-        if deg not in (150, 176):
-            continue
-        rb.set_state(np.array([0]), x, eq=eq, rows=np.array([0]))
+    seen = {}
+    for deg, _, _ in on_fold_branch(env):
         obs, r, term, trunc, info = env.step(np.zeros(4, np.float32))
         k = relative_rotation_stiffness(env.state().stiffness)[0]
         unstable = k < STIFFNESS_HAZARD * env.task.stiffness_scale

@@ -129,16 +129,22 @@ def test_mismatched_networks_are_refused_by_name():
         widen_state_dict(src.state_dict(), dst.state_dict(), noise=-1.0)
 
 
-def test_a_run_started_widened_keeps_the_source_agent_and_its_entropy(tmp_path):
-    """train(..., widen=True): the run's wider actor acts as the saved one did (before any
-    update) and carries its entropy coefficient; --widen without --init-from is refused."""
-    from stable_baselines3.common.save_util import load_from_zip_file
+def _small_sac_run(tmp_path):
+    """``(hyperparams, run folder)`` of a 100-step SAC run of [16, 16] networks (with updates,
+    so its optimizers hold Adam moments) to start widened runs from."""
     hp = train.load_hyperparams("sac", ZOO_ENV)
     hp = {**hp, "n_envs": 2, "learning_starts": 50, "buffer_size": 1000, "batch_size": 32,
           "env_kwargs": {**hp.get("env_kwargs", {}), "max_episode_steps": 20},
           "policy_kwargs": "dict(net_arch=[16, 16])"}
-    first = train.train("sac", ZOO_ENV, hp, steps=100, seed=1, out=tmp_path / "a",
-                        progress=False, eval_freq=0, eval_episodes=0)
+    return hp, train.train("sac", ZOO_ENV, hp, steps=100, seed=1, out=tmp_path / "a",
+                           progress=False, eval_freq=0, eval_episodes=0)
+
+
+def test_a_run_started_widened_keeps_the_source_agent_and_its_entropy(tmp_path):
+    """train(..., widen=True): the run's wider actor acts as the saved one did (before any
+    update) and carries its entropy coefficient; --widen without --init-from is refused."""
+    from stable_baselines3.common.save_util import load_from_zip_file
+    hp, first = _small_sac_run(tmp_path)
     wide_hp = {**hp, "policy_kwargs": "dict(net_arch=[32, 24])", "learning_starts": 10**6}
     run = train.train("sac", ZOO_ENV, wide_hp, steps=20, seed=2, out=tmp_path / "b",
                       progress=False, eval_freq=0, eval_episodes=0,
@@ -163,12 +169,7 @@ def test_a_run_with_an_appended_entry_keeps_the_agent_and_its_adam_moments(tmp_p
     saved agent's function and keeps its optimizers' Adam moments (zero for the new weights),
     so its first updates are a plain fine-tune's."""
     from stable_baselines3.common.save_util import load_from_zip_file
-    hp = train.load_hyperparams("sac", ZOO_ENV)
-    hp = {**hp, "n_envs": 2, "learning_starts": 50, "buffer_size": 1000, "batch_size": 32,
-          "env_kwargs": {**hp.get("env_kwargs", {}), "max_episode_steps": 20},
-          "policy_kwargs": "dict(net_arch=[16, 16])"}
-    first = train.train("sac", ZOO_ENV, hp, steps=100, seed=1, out=tmp_path / "a",
-                        progress=False, eval_freq=0, eval_episodes=0)
+    hp, first = _small_sac_run(tmp_path)
     more = {**hp, "learning_starts": 10**6,
             "env_kwargs": {**hp["env_kwargs"], "observe_stiffness": True}}
     run = train.train("sac", ZOO_ENV, more, steps=20, seed=2, out=tmp_path / "b",
