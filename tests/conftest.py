@@ -4,6 +4,8 @@
 - ``one_thread``: a fixture pinning torch to one thread for a test, ``one_thread_module`` for a
   module (both restore the previous count; no module sets and restores it by hand); the
   hard-case suite (``tests/hard/``) runs every module under it;
+- ``on_fold_branch``: the environment tests' Fig. 3 robot placed along a rotation branch
+  that turns unstable under torque control before it ends in a snap;
 - ``E, G``: the nitinol moduli of the paper's Table I [Pa], and ``two_tubes``: a two-tube robot
   given overall tube lengths. Test modules import them with ``from conftest import E, G,
   two_tubes`` (this is the suite's only conftest.py, so the name is unambiguous).
@@ -68,3 +70,27 @@ if torch is not None:
                 yield
         else:
             yield
+
+    @pytest.fixture
+    def on_fold_branch():
+        """``place(env, degrees=(150, 176))`` for the environment tests: robot 0 of a Fig. 3
+        ``env`` placed at rest on the branch at ``D = (98.7, 164.5) mm``, outer tube at 0, the
+        inner tube turned to each of ``degrees`` in turn (followed from 120 deg in 2 deg
+        steps, each solve warm from the last); yields ``(deg, x (1, 4), eq)``. The inner
+        tube's rotation stiffness ``dtau_2/dalpha_2`` turns negative near 163 deg on this
+        branch (a torque-controlled robot is unstable past it) and the branch ends in a snap
+        near 186 deg."""
+        import numpy as np
+
+        from envs.robots import solve_batch
+
+        def place(env, degrees=(150, 176)):
+            rb, robot = env.task.robots, env.robot
+            eq = None
+            for deg in range(120, max(degrees) + 1, 2):
+                x = np.array([[0.0987, 0.1645, 0.0, np.radians(deg)]])
+                eq = solve_batch(robot, x, initial=None if eq is None else eq.q)
+                if deg in degrees:
+                    rb.set_state(np.array([0]), x, eq=eq, rows=np.array([0]))
+                    yield deg, x, eq
+        return place
