@@ -79,9 +79,10 @@ def widen_state_dict(src: dict[str, torch.Tensor], dst: dict[str, torch.Tensor],
                          f"(only in source: {sorted(set(src) - set(dst))[:4]}, only in target: "
                          f"{sorted(set(dst) - set(src))[:4]}); they must share depth and heads")
     out = {k: v.detach().clone() for k, v in src.items()}
+    chains = _chains({k: v.shape for k, v in src.items()})
     at = _feature_count(src)
-    for hidden, _ in _chains({k: v.shape for k, v in src.items()}):
-        k = f"{hidden[0]}.weight"
+    for hidden, _ in chains:
+        k = f"{hidden[0]}.weight"      # the layer that reads the inputs
         extra = dst[k].shape[1] - out[k].shape[1]
         if extra < 0:
             raise ValueError(f"{hidden[0]}: the target reads fewer inputs ({dst[k].shape[1]}) "
@@ -94,7 +95,7 @@ def widen_state_dict(src: dict[str, torch.Tensor], dst: dict[str, torch.Tensor],
             out[k] = _insert_zero_columns(out[k], at, extra)
     # critic chain -> its hidden layers' unit maps and copy noise (the target reuses both)
     maps: dict[str, list] = {}
-    for hidden, heads in _chains({k: v.shape for k, v in src.items()}):
+    for hidden, heads in chains:
         key = hidden[0].replace("critic_target.", "critic.")
         reuse = key in maps
         layer_maps = maps.setdefault(key, [])
