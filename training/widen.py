@@ -53,8 +53,6 @@ def _feature_count(sd: dict[str, torch.Tensor]) -> int | None:
     """The number of observation features the networks read: the actor's input count (the
     critics read them followed by the action); None without an actor."""
     w = sd.get("actor.latent_pi.0.weight")
-    if w is None:
-        w = sd.get("actor.mu.weight")   # net_arch [] for the actor
     return None if w is None else int(w.shape[1])
 
 
