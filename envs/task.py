@@ -67,9 +67,10 @@ OBS_BOUND = 10.0
 #: ``achieved_goal[3]`` of a step that ends statically unstable (``stiffness_penalty``); a
 #: penalized snap reads 1, any other step 0
 UNSTABLE_FLAG = 0.5
-#: a step is statically unstable where ``k_rel < STIFFNESS_HAZARD * stiffness_scale``: below
-#: the round-off of the rigid common rotation (a quarter of random force-control states read
-#: ``k_rel = 0`` to 1e-12) and the shallow negative values of states far from any fold
+#: the default ``ReachConfig.stiffness_hazard``: a step is statically unstable where
+#: ``k_rel < STIFFNESS_HAZARD * stiffness_scale``: below the round-off of the rigid common
+#: rotation (a quarter of random force-control states read ``k_rel = 0`` to 1e-12) and the
+#: shallow negative values of states far from any fold
 STIFFNESS_HAZARD = -0.01
 
 
@@ -164,11 +165,17 @@ class ReachConfig:
             force agent. ``False`` (default): the observation the shipped agents read.
         stiffness_penalty: force control only. A reward (finite, <= 0; default 0: off) added
             at every step that ends statically unstable under torque control, its relative
-            rotation stiffness ``k_rel`` below ``STIFFNESS_HAZARD * stiffness_scale``
+            rotation stiffness ``k_rel`` below ``stiffness_hazard * stiffness_scale``
             (:func:`relative_rotation_stiffness`), the state that preceded every snap of the
             force agent: a dense signal where the snap penalty is rare. Such a step's
             ``achieved_goal[3]`` reads ``UNSTABLE_FLAG`` (0.5; 1 is a penalized snap), so
             that :func:`compute_reward` recomputes the penalty for relabelled goals.
+        stiffness_hazard: the threshold of ``stiffness_penalty`` in units of
+            ``stiffness_scale`` (finite, < 0; default ``STIFFNESS_HAZARD = -0.01``, just
+            below zero). Lower values penalize only deep instability: about 11 % of the
+            shipped agent's successful episodes END with ``k_rel < -0.01 stiffness_scale``
+            (the goal lies where the robot must be held by feedback), while its snaps were
+            mostly preceded by ``k_rel < -10 stiffness_scale`` (``docs/training.md``).
     """
 
     control: str = "force"
@@ -188,6 +195,7 @@ class ReachConfig:
     tip_noise: float = 0.0
     observe_stiffness: bool = False
     stiffness_penalty: float = 0.0
+    stiffness_hazard: float = STIFFNESS_HAZARD
 
     @property
     def plant(self) -> PlantVariation:
@@ -242,6 +250,10 @@ class ReachConfig:
         if self.stiffness_penalty != 0 and self.control != "force":
             raise ValueError(f"stiffness_penalty needs control='force' (joint steps do not "
                              f"compute the actuator stiffness), got control={self.control!r}")
+        if not (_real(self.stiffness_hazard) and self.stiffness_hazard < 0):
+            raise ValueError(f"stiffness_hazard must be a finite number < 0 (a threshold on "
+                             f"k_rel / stiffness_scale; >= 0 would flag stable states), got "
+                             f"{self.stiffness_hazard!r}")
         if not (_real(self.error_scale) and self.error_scale > 0):
             raise ValueError(f"error_scale must be a finite length > 0 [m], got "
                              f"{self.error_scale!r}")
@@ -795,7 +807,7 @@ class ReachBatch:
         unstable = np.zeros(self.B, dtype=bool)
         if self.config.stiffness_penalty != 0:
             k = relative_rotation_stiffness(self.robots.K_unclipped)
-            unstable = (k < STIFFNESS_HAZARD * self.stiffness_scale) & ~snap_term
+            unstable = (k < self.config.stiffness_hazard * self.stiffness_scale) & ~snap_term
         self.snap_flag = np.where(snap_term, 1.0, np.where(unstable, UNSTABLE_FLAG, 0.0))
         self._measure(np.arange(self.B))
         reward, terms = self._get_rew(snap_term, unstable)

@@ -250,3 +250,32 @@ def test_stiffness_penalty_marks_unstable_steps_and_her_recomputes_it(on_fold_br
         CTRReachEnv(stiffness_penalty=1.0)
     with pytest.raises(ValueError, match="stiffness_penalty needs control='force'"):
         CTRReachEnv(control="joint", stiffness_penalty=-1.0)
+
+
+def test_stiffness_hazard_moves_the_threshold(on_fold_branch):
+    """``stiffness_hazard`` is the threshold on ``k_rel / stiffness_scale``: at the unstable
+    reference state of the fold branch (176 deg, see above) a hazard just above its measured
+    ``k_rel / stiffness_scale`` flags the step and one just below does not; bad values name
+    the field."""
+    from envs.task import relative_rotation_stiffness
+
+    def last_step(hazard):
+        env = CTRReachEnv(compensation=True, reward="shaped", stiffness_penalty=-1.0,
+                          stiffness_hazard=hazard)
+        env.reset(seed=0)
+        degrees = []
+        for deg, _, _ in on_fold_branch(env):
+            degrees.append(deg)
+            _, _, _, _, info = env.step(np.zeros(4, np.float32))
+        assert degrees[-1] == 176
+        return relative_rotation_stiffness(env.state().stiffness)[0] \
+            / env.task.stiffness_scale, info
+
+    ratio, _ = last_step(-0.01)
+    assert ratio < -0.01
+    assert last_step(0.9 * ratio)[1]["unstable"]
+    _, info = last_step(1.1 * ratio)
+    assert not info["unstable"] and info["reward_stiffness"] == 0.0
+    for bad in (0.0, 0.5, float("nan")):
+        with pytest.raises(ValueError, match="stiffness_hazard must be a finite number < 0"):
+            envs.ReachConfig(stiffness_hazard=bad)
