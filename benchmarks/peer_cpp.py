@@ -335,6 +335,28 @@ def bench(args, lib_path: Path) -> dict:
     for s in CONTROL_STRATEGIES:
         peer_calls[("control", s)] = peer.prepare(a1, beta, psi0, s)
     tip_only = torchpvs.SolverOptions(compute_forces=False)
+    # torchpvs.Tracker: the control loop's fused warm step at the discretization its first
+    # (default) solve chose; one tracker per configuration, each placed on the warm
+    # equilibrium and restored to it before every timed step (restore is part of the time)
+    trackers = [torchpvs.Tracker(scene, rotation=r0[None], initial=e)
+                for r0, e in zip(rot0, warm, strict=True)]
+    snaps = [t.snapshot() for t in trackers]
+    ins_np = ins.numpy()
+    rot1_np = rot1.numpy()
+
+    def tracker_steps():
+        out = []
+        for t, s, r in zip(trackers, snaps, rot1_np, strict=True):
+            t.restore(s)
+            out.append(t.step(ins_np, r))
+        return out
+    batch_tracker = torchpvs.Tracker(scene, rotation=R0, initial=E0)
+    batch_snap = batch_tracker.snapshot()
+    ins_B, R1_np = np.repeat(ins_np[None], B, 0), R1.numpy()
+
+    def tracker_batch():
+        batch_tracker.restore(batch_snap)
+        return batch_tracker.step(ins_B, R1_np)
     tp = {
         "warm": lambda: [torchpvs.solve(scene, rotation=r[None], initial=e) for r, e in pairs],
         # what the peer computes: the tip alone, no actuation forces (at the Fig. 3 scene's
@@ -346,6 +368,8 @@ def bench(args, lib_path: Path) -> dict:
         "control": lambda: [torchpvs.solve(scene, rotation=r[None], initial=e)
                             .jacobians(compliance=False) for r, e in pairs],
         "batch": lambda: torchpvs.solve(scene, rotation=R1, initial=E0),
+        "tracker": tracker_steps,
+        "tracker_batch": tracker_batch,
     }
     cases = {f"peer_{k}_{s}": (fn, None) for (k, s), (fn, _) in peer_calls.items()}
     # interleave: each torchpvs case right after the peer's strategies for it
@@ -357,6 +381,9 @@ def bench(args, lib_path: Path) -> dict:
         ordered[f"torchpvs_{k}"] = (None, tp[k])
         if k == "warm":
             ordered["torchpvs_warm_tip"] = (None, tp["warm_tip"])
+            ordered["torchpvs_tracker"] = (None, tp["tracker"])
+        if k == "batch":
+            ordered["torchpvs_tracker_batch"] = (None, tp["tracker_batch"])
     best = time_rounds(ordered, args.repeat)
 
     out = {"robot": "fig3", "tubes": N, "configs": C, "max_deg": args.max_deg,
@@ -377,6 +404,11 @@ def bench(args, lib_path: Path) -> dict:
     out["torchpvs_batch_ms"] = 1e3 * best["torchpvs_batch"][1] / B
     out["torchpvs_warm_tip_ms"] = 1e3 * best["torchpvs_warm_tip"][1] / C
     out["warm_tip_ratio"] = out["torchpvs_warm_tip_ms"] / out["peer_warm_ms"]
+    out["torchpvs_tracker_ms"] = 1e3 * best["torchpvs_tracker"][1] / C
+    out["tracker_ratio"] = out["torchpvs_tracker_ms"] / out["peer_warm_ms"]
+    out["torchpvs_tracker_batch_ms"] = 1e3 * best["torchpvs_tracker_batch"][1] / B
+    out["tracker_batch_ratio"] = out["torchpvs_tracker_batch_ms"] / out["peer_warm_ms"]
+    out["tracker_order"], out["tracker_n_magnus"] = trackers[0].order, trackers[0].n_magnus
     out["peer_batch_ms"] = out["peer_warm_ms"]
     for k in TARGETS:
         out[f"{k}_ratio"] = out[f"torchpvs_{k}_ms"] / out[f"peer_{k}_ms"]
@@ -400,6 +432,8 @@ def bench(args, lib_path: Path) -> dict:
     d_w, d_c, d_t = dist(pw, tip_w), dist(pc, tip_c), dist(pw, tip_t)
     same_c = d_c < 1e-5
     out["tip_max_diff_warm_m"] = float(d_w.max())
+    tip_tr = np.concatenate([st.tip for st in tracker_steps()])
+    out["tip_max_diff_tracker_m"] = float(dist(pw, tip_tr).max())
     out["tip_max_diff_tight_m"] = float(d_t.max())
     out["torchpvs_tight_converged"] = bool(tight.converged.all())
     out["tip_max_diff_cold_m"] = float(d_c[same_c].max()) if same_c.any() else None
@@ -500,8 +534,16 @@ def _print(r: dict) -> None:
               f"{'yes' if r[f'{k}_met'] else 'no':>5}")
     print(f"{'warm B=1, tip only':<30}{r['peer_warm_ms']:>10.4f}{r['torchpvs_warm_tip_ms']:>13.4f}"
           f"{r['warm_tip_ratio']:>11.2f}{'-':>9}{'-':>5}")
-    print("  (B = batch row: the peer figure is its single warm solve; tip only: torchpvs "
-          "without actuation forces, SolverOptions(compute_forces=False), the peer's output)")
+    print(f"{'Tracker.step B=1 (tip only)':<30}{r['peer_warm_ms']:>10.4f}"
+          f"{r['torchpvs_tracker_ms']:>13.4f}{r['tracker_ratio']:>11.2f}{'-':>9}{'-':>5}")
+    label = f"Tracker.step B={r['batch']}, per solve"
+    print(f"{label:<30}{r['peer_warm_ms']:>10.4f}{r['torchpvs_tracker_batch_ms']:>13.4f}"
+          f"{r['tracker_batch_ratio']:>11.2f}{'-':>9}{'-':>5}")
+    print("  (B = batch rows: the peer figure is its single warm solve; tip only: torchpvs "
+          "without actuation forces, SolverOptions(compute_forces=False), the peer's output;\n"
+          f"   Tracker: torchpvs.Tracker's fused warm step at the discretization of its first "
+          f"solve, order {r['tracker_order']}, {r['tracker_n_magnus']} Magnus steps, no "
+          f"order check; tips {r['tip_max_diff_tracker_m']:.2e} m from the peer's)")
     for k in ("warm", "cold", "control"):
         alts = ", ".join(f"{s} {v:.4f}" for s, v in r[f"peer_{k}_strategy_ms"].items())
         print(f"peer {k}: {r[f'peer_{k}_newton_steps']:.2f} Newton steps, "

@@ -15,6 +15,7 @@ from .options import AccuracyWarning, SolverError, SolverOptions
 from .plan import Plan
 from .scene import Actuation, Load, Scene, SceneError, Tube, builtin_scenes, load_scene
 from .solver import solve
+from .tracker import Tracker, TrackState
 
 __all__ = [
     "Tube", "Actuation", "Load", "Scene", "SceneError", "load_scene", "builtin_scenes",
@@ -22,6 +23,6 @@ __all__ = [
     "NearSingularStiffnessWarning",
     "continuation", "ActuationPath", "Continuation", "FoldEvent",
     "solve_force_controlled", "ForceControlled", "inverse_kinematics", "IKResult",
-    "calibrate", "Calibration",
+    "calibrate", "Calibration", "Tracker", "TrackState",
 ]
 __version__ = "0.1.0"

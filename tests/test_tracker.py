@@ -1,0 +1,160 @@
+"""torchpvs.Tracker: the fused warm step against the solver it shortcuts.
+
+Reference: ``torchpvs.solve`` chained warm along the same actuation path at the tracker's fixed
+discretization (``SolverOptions(order=k, n_magnus=m, compute_forces=False)``), which runs the
+same layout, rotation predictor, Newton iteration and tip pose through the driver, one stage at
+a time. The tracker must reproduce it step for step: tips and coordinates within 1e-12,
+identical iterations, convergence and stability verdicts.
+"""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+import torch
+from hypothesis import HealthCheck, given, settings
+from hypothesis import strategies as st
+
+import torchpvs as tp
+from torchpvs import compiled
+
+pytestmark = [pytest.mark.usefixtures("one_thread_module"),
+              pytest.mark.skipif(not compiled.available(), reason="numba not importable")]
+
+
+def _follow(scene, path, tracker):
+    """Step ``tracker`` and a chained warm ``torchpvs.solve`` along ``path`` (a list of
+    ``(insertion (B, N), rotation (B, N))``); return the largest tip and q differences and
+    assert identical iterations and verdicts at every step."""
+    eq = tp.solve(scene, insertion=path[0][0], rotation=path[0][1], options=tracker.options)
+    tracker.restore(tracker.snapshot())    # (a no-op restore is allowed)
+    worst_tip = worst_q = 0.0
+    for D, A in path[1:]:
+        eq = tp.solve(scene, insertion=D, rotation=A, initial=eq, options=tracker.options)
+        s = tracker.step(D, A)
+        np.testing.assert_array_equal(s.converged, eq.converged.numpy())
+        np.testing.assert_array_equal(s.iterations, eq.iterations.numpy())
+        np.testing.assert_array_equal(s.stable, eq.stable.numpy())
+        assert s.tip.shape == (D.shape[0], 3) and s.R.shape == (D.shape[0], 3, 3)
+        worst_tip = max(worst_tip, float(np.abs(s.tip - eq.tip_position.numpy()).max()))
+        worst_q = max(worst_q, float(np.abs(s.q - eq.q.numpy()).max()))
+        np.testing.assert_allclose(s.R, eq.tip_rotation.numpy(), atol=1e-12, rtol=0)
+        # (at convergence the residuals are round-off, 1e-16, and differ at that level)
+        np.testing.assert_allclose(s.residual, eq.residual_norm.numpy(), rtol=1e-6,
+                                   atol=1e-13)
+    return worst_tip, worst_q
+
+
+def test_rotation_path_matches_the_solver_with_its_predictor():
+    """Fig. 3 robot, the inner tube turned 0 -> 120 deg in 2 deg steps at fixed insertion:
+    every step takes the rotation predictor (same insertions), as the warm solve does."""
+    scene = tp.load_scene("renda2021_fig3")
+    D = torch.tensor([scene.actuation.insertion], dtype=torch.float64)
+    path = [(D, torch.tensor([[0.0, math.radians(a)]], dtype=torch.float64))
+            for a in range(0, 122, 2)]
+    tr = tp.Tracker(scene, insertion=path[0][0], rotation=path[0][1])
+    assert (tr.order, tr.n_magnus) == (tr.options.order, tr.options.n_magnus)
+    tip, q = _follow(scene, path, tr)
+    assert tip < 1e-12 and q < 1e-12
+
+
+def test_insertion_path_across_the_orifice_matches_the_solver():
+    """Fig. 3 robot (the outer tube's curved part starts at the orifice), both tubes moved
+    +-6 mm in 0.5 mm steps with a rotation change at each step: the sections appear and
+    vanish at the orifice, the layout and its compact coordinates change, no predictor."""
+    scene = tp.load_scene("renda2021_fig3")
+    D0 = np.array(scene.actuation.insertion)
+    path = []
+    for k in range(-12, 13):
+        D = D0 + np.array([0.5e-3 * k, -0.25e-3 * k])
+        A = np.array([0.0, math.radians(40 + 2 * k)])
+        path.append((torch.tensor(D[None]), torch.tensor(A[None])))
+    tr = tp.Tracker(scene, insertion=path[0][0], rotation=path[0][1])
+    tip, q = _follow(scene, path, tr)
+    assert tip < 1e-12 and q < 1e-12
+
+
+def test_three_tube_batch_matches_the_solver():
+    """A three-tube robot (torchpvs.testing.nested_scene), a batch of 4 with random rotations
+    and insertion moves: batch elements are independent, each as the batched solve gives
+    it."""
+    from torchpvs.testing import nested_scene
+    scene = nested_scene(3, seed=2)
+    rng = np.random.default_rng(3)
+    D0 = np.array(scene.actuation.insertion)
+    A = rng.uniform(-1.0, 1.0, (4, 3))
+    D = np.repeat(D0[None], 4, 0)
+    path = [(torch.tensor(D), torch.tensor(A))]
+    for _ in range(8):
+        A = A + rng.uniform(-0.05, 0.05, A.shape)
+        if rng.random() < 0.5:   # every tube retracted together by up to 1 mm (stays ordered)
+            D = D + rng.uniform(0.0, 1e-3, (4, 1))
+        path.append((torch.tensor(D), torch.tensor(A)))
+    tr = tp.Tracker(scene, insertion=path[0][0], rotation=path[0][1])
+    assert tr.batch == 4
+    tip, q = _follow(scene, path, tr)
+    assert tip < 1e-12 and q < 1e-12
+
+
+@settings(max_examples=8, deadline=None,
+          suppress_health_check=[HealthCheck.function_scoped_fixture])
+@given(st.floats(-3e-3, 3e-3), st.floats(-3e-3, 3e-3), st.floats(-0.3, 0.3),
+       st.floats(-0.3, 0.3))
+def test_any_small_move_matches_the_solver(dD1, dD2, dA1, dA2):
+    """Any single move of up to 3 mm and 0.3 rad per actuator from the Fig. 3 scene: the
+    tracker's step is the warm solve's."""
+    scene = tp.load_scene("renda2021_fig3")
+    D0 = torch.tensor([scene.actuation.insertion], dtype=torch.float64)
+    A0 = torch.tensor([scene.actuation.rotation], dtype=torch.float64)
+    path = [(D0, A0), (D0 + torch.tensor([[dD1, dD2]], dtype=torch.float64),
+                       A0 + torch.tensor([[dA1, dA2]], dtype=torch.float64))]
+    tip, q = _follow(scene, path, tp.Tracker(scene))
+    assert tip < 1e-12 and q < 1e-12
+
+
+def test_snapshot_and_restore_replay_a_step_exactly():
+    """A step from a restored snapshot repeats the first step bit for bit, whatever steps were
+    taken in between (a planner trying several actions from one state)."""
+    scene = tp.load_scene("renda2021_fig3")
+    tr = tp.Tracker(scene)
+    D = np.array(scene.actuation.insertion)
+    snap = tr.snapshot()
+    first = tr.step(D, [0.0, 0.3])
+    tr.step(D + 1e-3, [0.2, -0.4])
+    tr.restore(snap)
+    again = tr.step(D, [0.0, 0.3])
+    for a, b in zip(first, again, strict=True):
+        np.testing.assert_array_equal(a, b)
+    with pytest.raises(ValueError, match="snapshot"):
+        tr.restore((1, 2))
+
+
+def test_a_step_too_far_for_its_iterations_reports_it():
+    """With one Newton iteration allowed, a 90 deg step cannot converge: the tracker says so
+    (converged False, the residual above the tolerance, not stable) rather than returning a
+    state as an equilibrium."""
+    scene = tp.load_scene("renda2021_fig3")
+    # (the first solve, warm from the scene's equilibrium, needs no iteration)
+    tr = tp.Tracker(scene, options=tp.SolverOptions(max_iter=1), initial=tp.solve(scene))
+    s = tr.step(scene.actuation.insertion, [0.0, math.radians(90)])
+    assert not s.converged[0] and not s.stable[0]
+    assert np.isfinite(s.residual[0]) and s.residual[0] > tr.options.tol
+
+
+def test_bad_inputs_name_the_field():
+    scene = tp.load_scene("renda2021_fig3")
+    tr = tp.Tracker(scene)
+    with pytest.raises(ValueError, match=r"insertion must have shape \(2,\) or \(1, 2\)"):
+        tr.step([0.1, 0.1, 0.1], [0.0, 0.0])
+    with pytest.raises(ValueError, match="rotation must be finite"):
+        tr.step(scene.actuation.insertion, [0.0, float("nan")])
+    with pytest.raises(ValueError, match=r"insertion: D_j must be >= D_\{j-1\}"):
+        tr.step([0.2, 0.1], [0.0, 0.0])
+    loaded = tp.Scene(tubes=scene.tubes, actuation=scene.actuation,
+                      load=tp.Load(tip_force=(0.0, 0.1, 0.0)))
+    with pytest.raises(ValueError, match="scene.load must be zero"):
+        tp.Tracker(loaded)
+    with pytest.raises(ValueError, match="options.dtype must be torch.float64"):
+        tp.Tracker(scene, options=tp.SolverOptions(dtype=torch.float32))

@@ -1,0 +1,333 @@
+"""Stage 5c — the control-loop solve: a warm, fixed-discretization equilibrium in one compiled
+call per step.
+
+:func:`torchpvs.solve` re-chooses the discretization at every call (the order check, the
+Magnus check), computes the actuation forces and builds an :class:`~torchpvs.Equilibrium`
+around its tensors; at a batch of one that glue, not arithmetic, is nearly all of its time
+(docs/performance.md). A control loop steps the same robot by small actuator moves, where the
+discretization chosen once stays valid and the previous solution is the warm start. Then the
+whole step is two compiled calls: the layout and energy maps at the new actuation
+(:mod:`torchpvs.compiled_layout`), then, per element, the rotation predictor, the damped Newton
+solve of :mod:`torchpvs.compiled` and the tip pose.
+
+:class:`Tracker` is that loop. It is built from a scene by one default :func:`torchpvs.solve`
+(which picks the basis order and Magnus steps for the requested accuracy at the scene's
+actuation, or takes them from ``options``) and keeps, per element, the last coordinates and
+Hessian. Each :meth:`Tracker.step` computes what ``torchpvs.solve(scene, insertion=...,
+rotation=..., initial=previous, options=SolverOptions(order=k, n_magnus=m,
+compute_forces=False))`` computes for the pose: the same layout, predictor, Newton iteration
+and tip pose (``tests/test_tracker.py`` compares them step by step). It does not re-check the
+discretization, compute forces or gradients, or take a tip load; for those, and whenever a
+step does not converge, :func:`torchpvs.solve` is the tool (:meth:`Tracker.equilibrium` runs
+it at the tracker's state).
+
+Where it applies: CPU, float64, numba importable, an unloaded scene.
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass, replace
+from typing import NamedTuple
+
+import numpy as np
+import torch
+
+from . import compiled, compiled_layout
+from .basis import gauss_legendre
+from .compiled import cho_solve, cholesky, newton_into, pose_one
+from .compiled_load import cached_jit
+from .inputs import check_actuation
+from .newton import stability_threshold, tolerance
+from .options import SolverOptions
+from .order_control import newton_tol
+from .predictor import PREDICTOR_TRUST
+from .scene import Scene, load_scene
+from .sections import n_coordinates
+
+__all__ = ["Tracker", "TrackState"]
+
+
+class TrackState(NamedTuple):
+    """One :meth:`Tracker.step`'s result, numpy arrays over the batch ``B``.
+
+    q: ``(B, nq)`` generalized coordinates (the padded layout of :class:`Equilibrium.q`).
+    tip: ``(B, 3)`` [m] tip position, base frame. R: ``(B, 3, 3)`` tip orientation.
+    converged: ``(B,)`` bool, Newton's test passed and the pose is finite.
+    residual: ``(B,)`` Newton's scaled residual at ``q``. iterations: ``(B,)`` int.
+    stable: ``(B,)`` bool, the Hessian at ``q`` is positive definite (a minimum of the energy)
+    where the solve converged.
+    """
+
+    q: np.ndarray
+    tip: np.ndarray
+    R: np.ndarray
+    converged: np.ndarray
+    residual: np.ndarray
+    iterations: np.ndarray
+    stable: np.ndarray
+
+
+@cached_jit(nogil=True)
+def _stable(H, qm, tau):
+    """Equilibrium.stable for an element without the kernel's verdict: the Jacobi-scaled
+    stiffness on the active coordinates minus ``tau`` is positive definite."""
+    n = H.shape[0]
+    act = np.empty(n, dtype=np.int64)
+    m = 0
+    for i in range(n):
+        if qm[i] > 0 and abs(H[i, i]) > 0:
+            act[m] = i
+            m += 1
+    A = np.empty((m, m), dtype=H.dtype)
+    for a in range(m):
+        for c in range(m):
+            i, j = act[a], act[c]
+            A[a, c] = H[i, j] / math.sqrt(abs(H[i, i]) * abs(H[j, j]))
+        A[a, a] -= tau
+    return cholesky(A, np.empty((m, m), dtype=H.dtype))
+
+
+@cached_jit(nogil=True)
+def _track(q_prev, H_prev, cidx_prev, qmc_prev, predict, dA, D, GJ, length, trust,
+           qmask, psi0, tip_tube, cidx, qmask_c, bvec, h_c, ustar, EIw, EIws, GJw, Hsec,
+           guide, gconst, phi, Qb, psec, p_h, p_inc, p_held, p_local, phi_m, Q_m, S, small,
+           Lc, consts, minimize, max_iter, tau, q_out, H, tip, R, res, it, conv, verdict):
+    """Per element: the rotation predictor on the previous compact Hessian (where
+    ``predict``), the warm start masked to the new layout, compacted, the damped Newton solve,
+    the padded solution and its tip pose."""
+    B, nq = q_prev.shape
+    N = D.shape[1]
+    nc = cidx.shape[1]
+    ncp = cidx_prev.shape[1]
+    dt = q_prev.dtype
+    g = np.empty((B, nc), dtype=dt)
+    U = np.empty(B, dtype=dt)
+    qc = np.empty((B, nc), dtype=dt)
+    psi_tip = np.empty((B, N), dtype=dt)
+    qi = np.empty(nq, dtype=dt)
+    Lp = np.empty((ncp, ncp), dtype=dt)
+    rhs = np.empty(ncp, dtype=dt)
+    x = np.empty(ncp, dtype=dt)
+    for b in range(B):
+        for i in range(nq):
+            qi[i] = q_prev[b, i]
+        if predict[b]:
+            # torchpvs.predictor.rotation_predictor: dq = -H^-1 U_q,alpha dalpha
+            ok = cholesky(H_prev[b], Lp)
+            if ok:
+                for i in range(ncp):
+                    rhs[i] = 0.0
+                for j in range(N):
+                    rhs[j] = GJ[b, j] * dA[b, j]
+                cho_solve(Lp, rhs, x)
+                for j in range(N):
+                    x[j] -= dA[b, j] / (D[b, j] if D[b, j] > 0 else 1.0)
+                big = 0.0
+                for i in range(ncp):
+                    x[i] *= qmc_prev[b, i]
+                    if not math.isfinite(x[i]):
+                        ok = False
+                    big = max(big, abs(x[i]))
+                for j in range(N):
+                    ok = ok and qmc_prev[b, j] > 0
+                if ok and big * length < trust:
+                    for i in range(ncp):
+                        qi[cidx_prev[b, i]] += x[i]
+        for i in range(nc):
+            qc[b, i] = qi[cidx[b, i]] * qmask[b, cidx[b, i]]
+        newton_into(b, qc, qmask_c, psi0, bvec, h_c, ustar, EIw, EIws, GJw, Hsec, guide,
+                    gconst, phi, Qb, None, Lc, consts, minimize, max_iter, H, g, U, res, it,
+                    conv, verdict)
+        for i in range(nq):
+            q_out[b, i] = 0.0
+        for i in range(nc):
+            q_out[b, cidx[b, i]] = qc[b, i]
+        pose_one(q_out[b], qmask[b], psi0[b], D[b], tip_tube[b], psec[b], p_h[b], p_inc[b],
+                 p_held[b], p_local[b], phi_m, Q_m, S, small, tip[b], R[b], psi_tip[b])
+        for k in range(3):
+            if not math.isfinite(tip[b, k]):
+                conv[b] = False
+        if verdict[b] < 0 and conv[b]:
+            verdict[b] = 1 if _stable(H[b], qmask_c[b], tau) else 0
+
+
+class _Snapshot(NamedTuple):
+    q: np.ndarray
+    H: np.ndarray
+    cidx: np.ndarray
+    qmask_c: np.ndarray
+    D: np.ndarray
+    A: np.ndarray
+    state: TrackState
+
+
+@dataclass(frozen=True)
+class _Tubes:
+    EI: np.ndarray
+    GJ: np.ndarray
+    length: np.ndarray
+    straight: np.ndarray
+    coef: np.ndarray
+
+
+class Tracker:
+    """Warm equilibria of one robot (batched) along a control loop, at a fixed discretization.
+
+    Args:
+        scene: a :class:`~torchpvs.Scene` or a built-in scene name / file path; unloaded.
+        insertion, rotation: ``(N,)`` or ``(B, N)`` [m], [rad]: where the tracker starts
+            (default the scene's actuation); the first state is a :func:`torchpvs.solve` there.
+        options: :class:`SolverOptions` of that first solve (its accuracy picks the basis
+            order and Magnus steps unless ``order`` and ``n_magnus`` are given) and of the
+            steps (``tol``, ``accuracy``, ``method``, ``max_iter``). ``dtype`` must be
+            float64, ``device`` CPU.
+        initial: the first solve's warm start (as :func:`torchpvs.solve`'s): an
+            :class:`~torchpvs.Equilibrium` on the branch to follow.
+
+    Raises:
+        ValueError: a tip load, a non-float64 or non-CPU option, numba not importable, or a
+            first solve that did not converge.
+
+    Attributes: ``order``, ``n_magnus`` (the fixed discretization), ``state`` (the last
+    :class:`TrackState`), ``batch``.
+
+    :meth:`snapshot` and :meth:`restore` save and return to a state (e.g. to try several
+    actions from one state, as a sampling planner or MPC does).
+    """
+
+    def __init__(self, scene: Scene | str, *, insertion=None, rotation=None,
+                 options: SolverOptions | None = None, initial=None):
+        from .solver import solve
+        if not isinstance(scene, Scene):
+            scene = load_scene(scene)
+        opts = options or SolverOptions()
+        if not compiled.available():
+            raise ValueError("Tracker needs numba (the compiled kernel): pip install numba")
+        if opts.dtype not in (None, torch.float64):
+            raise ValueError(f"options.dtype must be torch.float64 for a Tracker, got "
+                             f"{opts.dtype}")
+        if opts.device is not None and torch.device(opts.device).type != "cpu":
+            raise ValueError(f"options.device must be the CPU for a Tracker, got {opts.device}")
+        if not scene.load.is_zero:
+            raise ValueError("scene.load must be zero for a Tracker (a tip load needs the "
+                             "loaded Newton of torchpvs.solve)")
+        eq = solve(scene, insertion=insertion, rotation=rotation, initial=initial,
+                   options=replace(opts, compute_forces=False))
+        if not bool(eq.converged.all()):
+            b = int((~eq.converged).nonzero()[0])
+            raise ValueError(f"Tracker: the first solve did not converge (element {b}: "
+                             f"{eq.reason[b]})")
+        self.scene = scene
+        self.order = int(eq.order)
+        self.n_magnus = int(eq.context.discretization.n_magnus)
+        self.options = replace(opts, order=self.order, n_magnus=self.n_magnus,
+                               compute_forces=False)
+        self._disc = self.options.discretization(self.order)
+        dt = torch.float64
+        tubes = eq.context.tubes
+        N = scene.n_tubes
+        self.N = N
+        self._tubes = _Tubes(*(x.detach().numpy().astype(np.float64) for x in
+                               (tubes.EI, tubes.GJ, tubes.length, tubes.straight, tubes.coef)))
+        self._length = float(tubes.length.max())
+        P = tubes.coef.shape[-1]
+        tab = self._disc.tables(dt, torch.device("cpu"))
+        xg, wg = gauss_legendre(max(2, P + 1), dtype=dt)
+        self._layout_tables = tuple(np.ascontiguousarray(a.numpy()) for a in
+                                    (xg, wg, tab.xq, tab.wq, tab.xm, tab.phi_q))
+        self._phi, self._Qb = tab.phi_q.numpy(), tab.Q_q.numpy()
+        self._phi_m, self._Q_m = tab.phi_m.numpy(), tab.Q_m.numpy()
+        self._n = self._disc.n_basis
+        self.nq = n_coordinates(N, self._n)
+        eps = float(torch.finfo(dt).eps)
+        self._tau = stability_threshold(dt)
+        self._consts = np.array([tolerance(newton_tol(scene, self.options), dt),
+                                 0.01 * eps ** 0.5, eps, float(torch.finfo(dt).tiny)])
+        # the state: padded q, compact Hessian on the layout's compact coordinates
+        info = eq.context.implicit
+        self._q = np.ascontiguousarray(eq.q.detach().numpy())
+        self._H = np.ascontiguousarray(info.Hc.detach().numpy())
+        self._cidx = np.ascontiguousarray(info.cidx.numpy())
+        self._qmc = np.ascontiguousarray(info.qmask_c.detach().numpy())
+        self._D = np.ascontiguousarray(eq.context.insertion.detach().numpy(), dtype=np.float64)
+        self._A = np.ascontiguousarray(eq.context.rotation.detach().numpy(), dtype=np.float64)
+        self.batch = B = self._q.shape[0]
+        # the tube arrays broadcast to the batch once (the layout call reads (B, ...) arrays)
+        tb = self._tubes
+        self._tube_args = tuple(np.ascontiguousarray(np.broadcast_to(a, (B,) + a.shape[-k:]))
+                                for a, k in ((tb.EI, 1), (tb.GJ, 1), (tb.length, 1),
+                                             (tb.straight, 1), (tb.coef, 3)))
+        self._unloaded = np.zeros(B, dtype=np.bool_)
+        self.state = TrackState(q=self._q.copy(), tip=eq.tip_position.detach().numpy().copy(),
+                                R=eq.tip_rotation.detach().numpy().copy(),
+                                converged=eq.converged.numpy().copy(),
+                                residual=eq.residual_norm.detach().numpy().copy(),
+                                iterations=eq.iterations.numpy().copy(),
+                                stable=eq.stable.numpy().copy())
+
+    def snapshot(self) -> _Snapshot:
+        """The tracker's state (warm start, Hessian, actuation, last result), for
+        :meth:`restore`. Arrays are not copied: a step replaces them, it never writes into
+        them."""
+        return _Snapshot(self._q, self._H, self._cidx, self._qmc, self._D, self._A, self.state)
+
+    def restore(self, snap: _Snapshot) -> None:
+        """Return to a :meth:`snapshot` of this tracker: the next step starts from it."""
+        if not isinstance(snap, _Snapshot) or snap.q.shape != (self.batch, self.nq):
+            raise ValueError("restore: snap must be a snapshot() of this tracker")
+        self._q, self._H, self._cidx, self._qmc, self._D, self._A, self.state = snap
+
+    def _batched(self, x, name: str) -> np.ndarray:
+        a = np.asarray(x.detach().cpu() if isinstance(x, torch.Tensor) else x, dtype=np.float64)
+        if a.ndim == 1:
+            a = a[None]
+        if a.shape != (self.batch, self.N):
+            raise ValueError(f"{name} must have shape ({self.N},) or ({self.batch}, {self.N}) "
+                             f"(the tracker's batch), got {a.shape}")
+        if not np.isfinite(a).all():
+            raise ValueError(f"{name} must be finite")
+        return np.ascontiguousarray(a)
+
+    def step(self, insertion, rotation) -> TrackState:
+        """The equilibrium at ``insertion`` ``(N,)``/``(B, N)`` [m] and ``rotation`` [rad],
+        warm from the last state; becomes :attr:`state`. Elements that did not converge keep
+        their result (``converged`` False, ``residual``): the next step starts from it, so a
+        caller that needs a converged state re-solves with :meth:`equilibrium`."""
+        D = self._batched(insertion, "insertion")
+        A = self._batched(rotation, "rotation")
+        check_actuation(D, self.scene)
+        # solve_tensors: alpha - 2 pi k, the energy being 2 pi-periodic in every rotation
+        A = A - 2 * math.pi * np.round(A / (2 * math.pi))
+        B = D.shape[0]
+        EI, GJ, L, Ls, coef = self._tube_args
+        xg, wg, xq, wq, xm, phi_q = self._layout_tables
+        out = compiled_layout._layout_maps(EI, GJ, L, Ls, coef, D, A, self._unloaded, 1e-12,
+                                           xg, wg, xq, wq, xm, phi_q, self._n)
+        (ell, _tau, _start, h, _present, _curved, _active, _presc, qmask, psi0, gconst, _W,
+         tip_tube, _s_tip, _before, _sec, psec, cidx, ustar, EIw, EIws, GJw, Hsec, guide,
+         bvec, qmask_c, h_c, _presc_inc, p_h, p_inc, p_held, p_local) = out
+        dA = A - self._A
+        dA = dA - 2 * math.pi * np.round(dA / (2 * math.pi))
+        predict = (D == self._D).all(-1)
+        Lc = np.maximum(ell.max(-1) + D.max(-1), 1e-6)
+        nc = cidx.shape[1]
+        q = np.empty((B, self.nq))
+        H = np.empty((B, nc, nc))
+        tip = np.empty((B, 3))
+        R = np.empty((B, 3, 3))
+        res = np.empty(B)
+        it = np.zeros(B, dtype=np.int64)
+        conv = np.zeros(B, dtype=np.bool_)
+        verdict = np.empty(B, dtype=np.int8)
+        _track(self._q, self._H, self._cidx, self._qmc, predict, dA, D, GJ, self._length,
+               PREDICTOR_TRUST,
+               qmask, psi0, tip_tube, cidx, qmask_c, bvec, h_c, ustar, EIw, EIws, GJw, Hsec,
+               guide, gconst, self._phi, self._Qb, psec, p_h, p_inc, p_held, p_local,
+               self._phi_m, self._Q_m, h.shape[1], 1e-6, Lc, self._consts,
+               self.options.method == "minimize", self.options.max_iter, self._tau, q, H, tip,
+               R, res, it, conv, verdict)
+        self._q, self._H, self._cidx, self._qmc, self._D, self._A = q, H, cidx, qmask_c, D, A
+        self.state = TrackState(q=q, tip=tip, R=R, converged=conv, residual=res, iterations=it,
+                                stable=conv & (verdict == 1))
+        return self.state
