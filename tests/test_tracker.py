@@ -158,3 +158,18 @@ def test_bad_inputs_name_the_field():
         tp.Tracker(loaded)
     with pytest.raises(ValueError, match="options.dtype must be torch.float64"):
         tp.Tracker(scene, options=tp.SolverOptions(dtype=torch.float32))
+
+
+def test_equilibrium_is_the_full_solve_at_the_tracker_state():
+    """``Tracker.equilibrium()``: ``torchpvs.solve`` at the current actuation warm from the
+    tracker's coordinates; at the tracker's own discretization it lands on the same tip, and
+    by default it is the automatic solve with forces (within its accuracy of the tip)."""
+    scene = tp.load_scene("renda2021_fig3")
+    tr = tp.Tracker(scene)
+    s = tr.step(scene.actuation.insertion, [0.1, 0.6])
+    same = tr.equilibrium(tr.options)
+    np.testing.assert_allclose(same.tip_position.numpy(), s.tip, atol=1e-12, rtol=0)
+    full = tr.equilibrium()
+    assert full.actuation_forces is not None and bool(full.converged.all())
+    assert np.abs(full.tip_position.numpy() - s.tip).max() <= tp.SolverOptions().accuracy
+    np.testing.assert_array_equal(tr.state.tip, s.tip)     # the state is unchanged

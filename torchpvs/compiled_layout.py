@@ -41,7 +41,7 @@ try:
 except ImportError:      # pragma: no cover - numba is a dependency; see torchpvs.compiled
     numba = None
 
-__all__ = ["layout_and_maps"]
+__all__ = ["layout_and_maps", "layout_maps_arrays"]
 
 _jit = cached_jit(nogil=True)
 
@@ -262,9 +262,10 @@ def _maps_one(b, EI, GJ, coef, D, n, xq, xm, phi, tau, start, h, present, curved
 
 
 @_jit
-def _layout_maps(EI, GJ, L, Ls, coef, D, A, loaded, min_section, xg, wg, xq, wq, xm, phi, n):
+def layout_maps_arrays(EI, GJ, L, Ls, coef, D, A, loaded, min_section, xg, wg, xq, wq, xm, phi, n):
     """The layout arrays, then the maps arrays of the whole batch (the compact section count
-    is the batch's largest)."""
+    is the batch's largest), as numpy arrays in the order :func:`layout_and_maps` unpacks
+    them; callable from other compiled code (:mod:`torchpvs.tracker`)."""
     B, N = D.shape
     S_full = 2 * N
     C = 2 + N
@@ -363,7 +364,7 @@ def layout_and_maps(tubes: TubeTensors, D: torch.Tensor, A: torch.Tensor, F: tor
     if nq != N + 2 * N * (2 + N) * n:
         return None
     Dn = D.detach()
-    out = _layout_maps(
+    out = layout_maps_arrays(
         _numpy(tubes.EI.detach().to(dtype), (B, N)), _numpy(tubes.GJ.detach().to(dtype), (B, N)),
         _numpy(tubes.length.detach().to(dtype), (B, N)),
         _numpy(tubes.straight.detach().to(dtype), (B, N)),

@@ -33,9 +33,10 @@ from typing import NamedTuple
 import numpy as np
 import torch
 
-from . import compiled, compiled_layout
+from . import compiled
 from .basis import gauss_legendre
 from .compiled import cho_solve, cholesky, newton_into, pose_one
+from .compiled_layout import layout_maps_arrays
 from .compiled_load import cached_jit
 from .inputs import check_actuation
 from .newton import stability_threshold, tolerance
@@ -162,6 +163,38 @@ class _Snapshot(NamedTuple):
     state: TrackState
 
 
+@cached_jit(nogil=True)
+def _layout_and_track(EI, GJ, L, Ls, coef, D, A, unloaded, xg, wg, xq, wq, xm, n, q_prev,
+                      H_prev, cidx_prev, qmc_prev, predict, dA, length, trust, phi, Qb, phi_m,
+                      Q_m, small, consts, minimize, max_iter, tau, tip, R, res, it, conv,
+                      verdict):
+    """:func:`torchpvs.compiled_layout.layout_maps_arrays` at ``(D, A)`` then :func:`_track`, in
+    one call: only what the next step and the caller read is returned to Python, ``(q,
+    H, cidx, qmask_c)`` (boxing each of the layout's 32 arrays costs about a microsecond)."""
+    (ell, _tau, _start, h, _present, _curved, _active, _presc, qmask, psi0, gconst, _W,
+     tip_tube, _s_tip, _before, _sec, psec, cidx, ustar, EIw, EIws, GJw, Hsec, guide,
+     bvec, qmask_c, h_c, _presc_inc, p_h, p_inc, p_held, p_local) = layout_maps_arrays(
+        EI, GJ, L, Ls, coef, D, A, unloaded, 1e-12, xg, wg, xq, wq, xm, phi, n)
+    B, nq = q_prev.shape
+    N = D.shape[1]
+    nc = cidx.shape[1]
+    Lc = np.empty(B, dtype=D.dtype)
+    for b in range(B):
+        a = 0.0
+        d = 0.0
+        for j in range(N):
+            a = max(a, ell[b, j])
+            d = max(d, D[b, j])
+        Lc[b] = max(a + d, 1e-6)
+    q = np.empty((B, nq), dtype=D.dtype)
+    H = np.empty((B, nc, nc), dtype=D.dtype)
+    _track(q_prev, H_prev, cidx_prev, qmc_prev, predict, dA, D, GJ, length, trust, qmask,
+           psi0, tip_tube, cidx, qmask_c, bvec, h_c, ustar, EIw, EIws, GJw, Hsec, guide,
+           gconst, phi, Qb, psec, p_h, p_inc, p_held, p_local, phi_m, Q_m, h.shape[1], small,
+           Lc, consts, minimize, max_iter, tau, q, H, tip, R, res, it, conv, verdict)
+    return q, H, cidx, qmask_c
+
+
 @dataclass(frozen=True)
 class _Tubes:
     EI: np.ndarray
@@ -219,6 +252,7 @@ class Tracker:
             raise ValueError(f"Tracker: the first solve did not converge (element {b}: "
                              f"{eq.reason[b]})")
         self.scene = scene
+        self._user_order, self._user_magnus = opts.order, opts.n_magnus
         self.order = int(eq.order)
         self.n_magnus = int(eq.context.discretization.n_magnus)
         self.options = replace(opts, order=self.order, n_magnus=self.n_magnus,
@@ -266,6 +300,19 @@ class Tracker:
                                 iterations=eq.iterations.numpy().copy(),
                                 stable=eq.stable.numpy().copy())
 
+    def equilibrium(self, options: SolverOptions | None = None):
+        """:func:`torchpvs.solve` at the tracker's current actuation, warm from its
+        coordinates, with ``options`` (default: the tracker's own, automatic order and Magnus
+        steps restored, forces computed): the full :class:`~torchpvs.Equilibrium` (actuation
+        forces, stability margin, Jacobians, gradients), or the re-solve of a step that did
+        not converge. The tracker's state is not changed."""
+        from .solver import solve
+        opts = options or replace(self.options, order=self._user_order,
+                                  n_magnus=self._user_magnus, compute_forces=True)
+        return solve(self.scene, insertion=torch.from_numpy(self._D.copy()),
+                     rotation=torch.from_numpy(self._A.copy()),
+                     initial=torch.from_numpy(self._q.copy()), options=opts)
+
     def snapshot(self) -> _Snapshot:
         """The tracker's state (warm start, Hessian, actuation, last result), for
         :meth:`restore`. Arrays are not copied: a step replaces them, it never writes into
@@ -300,33 +347,22 @@ class Tracker:
         # solve_tensors: alpha - 2 pi k, the energy being 2 pi-periodic in every rotation
         A = A - 2 * math.pi * np.round(A / (2 * math.pi))
         B = D.shape[0]
-        EI, GJ, L, Ls, coef = self._tube_args
-        xg, wg, xq, wq, xm, phi_q = self._layout_tables
-        out = compiled_layout._layout_maps(EI, GJ, L, Ls, coef, D, A, self._unloaded, 1e-12,
-                                           xg, wg, xq, wq, xm, phi_q, self._n)
-        (ell, _tau, _start, h, _present, _curved, _active, _presc, qmask, psi0, gconst, _W,
-         tip_tube, _s_tip, _before, _sec, psec, cidx, ustar, EIw, EIws, GJw, Hsec, guide,
-         bvec, qmask_c, h_c, _presc_inc, p_h, p_inc, p_held, p_local) = out
+        xg, wg, xq, wq, xm, _ = self._layout_tables
         dA = A - self._A
         dA = dA - 2 * math.pi * np.round(dA / (2 * math.pi))
         predict = (D == self._D).all(-1)
-        Lc = np.maximum(ell.max(-1) + D.max(-1), 1e-6)
-        nc = cidx.shape[1]
-        q = np.empty((B, self.nq))
-        H = np.empty((B, nc, nc))
         tip = np.empty((B, 3))
         R = np.empty((B, 3, 3))
         res = np.empty(B)
         it = np.zeros(B, dtype=np.int64)
         conv = np.zeros(B, dtype=np.bool_)
         verdict = np.empty(B, dtype=np.int8)
-        _track(self._q, self._H, self._cidx, self._qmc, predict, dA, D, GJ, self._length,
-               PREDICTOR_TRUST,
-               qmask, psi0, tip_tube, cidx, qmask_c, bvec, h_c, ustar, EIw, EIws, GJw, Hsec,
-               guide, gconst, self._phi, self._Qb, psec, p_h, p_inc, p_held, p_local,
-               self._phi_m, self._Q_m, h.shape[1], 1e-6, Lc, self._consts,
-               self.options.method == "minimize", self.options.max_iter, self._tau, q, H, tip,
-               R, res, it, conv, verdict)
+        q, H, cidx, qmask_c = _layout_and_track(
+            *self._tube_args, D, A, self._unloaded, xg, wg, xq, wq, xm, self._n, self._q,
+            self._H, self._cidx, self._qmc, predict, dA, self._length, PREDICTOR_TRUST,
+            self._phi, self._Qb, self._phi_m, self._Q_m, 1e-6, self._consts,
+            self.options.method == "minimize", self.options.max_iter, self._tau, tip, R, res,
+            it, conv, verdict)
         self._q, self._H, self._cidx, self._qmc, self._D, self._A = q, H, cidx, qmask_c, D, A
         self.state = TrackState(q=q, tip=tip, R=R, converged=conv, residual=res, iterations=it,
                                 stable=conv & (verdict == 1))
