@@ -173,3 +173,93 @@ def test_equilibrium_is_the_full_solve_at_the_tracker_state():
     assert full.actuation_forces is not None and bool(full.converged.all())
     assert np.abs(full.tip_position.numpy() - s.tip).max() <= tp.SolverOptions().accuracy
     np.testing.assert_array_equal(tr.state.tip, s.tip)     # the state is unchanged
+
+
+def _fd_jacobian(tr, D, A, h_D=1e-6, h_A=1e-6):
+    """Central differences of the tracker's own tip position in every actuator, each from a
+    snapshot of the state at ``(D, A)`` (an independent check of the closed form)."""
+    snap = tr.snapshot()
+    B, N = D.shape
+    J = np.empty((B, 3, 2 * N))
+    for c in range(2 * N):
+        h = h_D if c < N else h_A
+        tips = []
+        for sgn in (1.0, -1.0):
+            Dp, Ap = D.copy(), A.copy()
+            if c < N:
+                Dp[:, c] += sgn * h
+            else:
+                Ap[:, c - N] += sgn * h
+            tr.restore(snap)
+            tips.append(tr.step(Dp, Ap).tip)
+        J[:, :, c] = (tips[0] - tips[1]) / (2 * h)
+    tr.restore(snap)
+    return J
+
+
+def test_control_step_matches_the_jacobians_away_from_kinks():
+    """``step(..., jacobians=True)`` off every kink (both insertions 1 mm from the Fig. 3
+    scene's, where the outer tube's transition sits at the orifice): the tip Jacobian and the
+    actuator stiffness are ``Equilibrium.jacobians()``' closed forms at the same equilibrium
+    (to rounding), and the tip rows agree with central differences of the tracker's steps."""
+    scene = tp.load_scene("renda2021_fig3")
+    D = np.array([scene.actuation.insertion]) + 1e-3
+    A = np.array([[0.2, 1.1]])
+    tr = tp.Tracker(scene, insertion=D, rotation=A)
+    s = tr.step(D, A + 0.01, jacobians=True)
+    cj = tr.equilibrium(tr.options).jacobians(compliance=False)
+    J, K = cj.tip_jacobian.numpy(), cj.actuator_stiffness.numpy()
+    np.testing.assert_allclose(s.tip_jacobian, J, atol=1e-12 * np.abs(J).max(), rtol=0)
+    np.testing.assert_allclose(s.actuator_stiffness, K, atol=1e-12 * np.abs(K).max(), rtol=0)
+    fd = _fd_jacobian(tr, D, A + 0.01)
+    np.testing.assert_allclose(s.tip_jacobian[:, :3], fd, atol=1e-6 * np.abs(fd).max(), rtol=0)
+
+
+def test_control_step_takes_the_retracting_side_at_a_kink():
+    """At the Fig. 3 scene's insertions the outer tube's curved part starts at the orifice: a
+    kink of the tip and of ``U*`` in ``D_1``. The control step takes the retracting side as
+    ``Equilibrium.jacobians()`` does (agreeing to the O(1e-7 m) offset of that side), and its
+    ``D_1`` column is the one-sided difference on that side, not the other."""
+    scene = tp.load_scene("renda2021_fig3")
+    D = np.array([scene.actuation.insertion])
+    A = np.array([[0.0, 0.8]])
+    tr = tp.Tracker(scene, rotation=A)
+    s = tr.step(D, A, jacobians=True)
+    cj = tr.equilibrium(tr.options).jacobians(compliance=False)
+    J, K = cj.tip_jacobian.numpy(), cj.actuator_stiffness.numpy()
+    np.testing.assert_allclose(s.tip_jacobian, J, atol=1e-5 * np.abs(J).max(), rtol=0)
+    np.testing.assert_allclose(s.actuator_stiffness, K, atol=1e-4 * np.abs(K).max(), rtol=0)
+    snap = tr.snapshot()
+    h = 1e-6
+    side = {}
+    for sgn in (1.0, -1.0):
+        tr.restore(snap)
+        Dp = D.copy()
+        Dp[0, 0] += sgn * h
+        side[sgn] = (tr.step(Dp, A).tip - s.tip) / (sgn * h)
+    retract, advance = side[1.0][0], side[-1.0][0]
+    col = s.tip_jacobian[0, :3, 0]
+    assert np.abs(col - retract).max() < 1e-3 * np.abs(retract).max()
+    assert np.abs(col - advance).max() > 0.1 * np.abs(retract).max()   # a real kink
+
+
+def test_control_step_batched_three_tubes_against_differences():
+    """Three tubes, a batch of 3 random states: the tip rows against central differences, the
+    stiffness symmetric with the common rotation as its null direction (no tip load: turning
+    every tube together costs no energy)."""
+    from torchpvs.testing import nested_scene
+    scene = nested_scene(3, seed=4)
+    rng = np.random.default_rng(5)
+    # (bases 1 mm apart and off the scene's values: no kink, differences on both sides)
+    D = (np.repeat(np.array([scene.actuation.insertion]), 3, 0) + np.array([1e-3, 2e-3, 3e-3])
+         + rng.uniform(0, 2e-3, (3, 1)))
+    A = rng.uniform(-1.5, 1.5, (3, 3))
+    tr = tp.Tracker(scene, insertion=D, rotation=A)
+    s = tr.step(D, A, jacobians=True)
+    assert s.converged.all()
+    fd = _fd_jacobian(tr, D, A)
+    np.testing.assert_allclose(s.tip_jacobian[:, :3], fd, atol=2e-6 * np.abs(fd).max(), rtol=0)
+    K = s.actuator_stiffness
+    np.testing.assert_array_equal(K, np.swapaxes(K, 1, 2))
+    common = np.array([0, 0, 0, 1.0, 1.0, 1.0])
+    assert np.abs(K @ common).max() < 1e-9 * np.abs(K).max()

@@ -35,9 +35,18 @@ import torch
 
 from . import compiled
 from .basis import gauss_legendre
-from .compiled import cho_solve, cholesky, newton_into, pose_one
+from .compiled import (
+    cho_solve,
+    cholesky,
+    lu_solve,
+    newton_into,
+    pose_one,
+    stiffness_rows_one,
+    tip_partials_one,
+)
 from .compiled_layout import layout_maps_arrays
 from .compiled_load import cached_jit
+from .forces import KINK_DELTA, kink_mask
 from .inputs import check_actuation
 from .newton import stability_threshold, tolerance
 from .options import SolverOptions
@@ -58,6 +67,11 @@ class TrackState(NamedTuple):
     residual: ``(B,)`` Newton's scaled residual at ``q``. iterations: ``(B,)`` int.
     stable: ``(B,)`` bool, the Hessian at ``q`` is positive definite (a minimum of the energy)
     where the solve converged.
+    tip_jacobian: ``(B, 6, 2N)`` ``d(tip)/dx``, rows the tip position [m] and spatial rotation
+    [rad], columns ``x = (D_1..D_N [m], alpha_1..alpha_N [rad])``; actuator_stiffness:
+    ``(B, 2N, 2N)`` ``dtau/dx`` [N/m, N, N·m] (:mod:`torchpvs.jacobians`' closed forms, the
+    same one-sided rule at a kink); both ``None`` unless the step was asked for them, NaN
+    rows where it did not converge.
     """
 
     q: np.ndarray
@@ -67,6 +81,8 @@ class TrackState(NamedTuple):
     residual: np.ndarray
     iterations: np.ndarray
     stable: np.ndarray
+    tip_jacobian: np.ndarray | None = None
+    actuator_stiffness: np.ndarray | None = None
 
 
 @cached_jit(nogil=True)
@@ -164,17 +180,86 @@ class _Snapshot(NamedTuple):
 
 
 @cached_jit(nogil=True)
+def _control_rows(b, q, H, cidx, qmask_c, qmask, D, L, Ls, EI, GJ, coef, tau, psi0, start, h,
+                  present, curved, active, presc, W, tip_tube, xq, wq, phi, Qb, xm, phi_m, Q_m,
+                  J, K):
+    """Element ``b``'s control step at ``q`` with the compact Hessian ``H`` (its Schur
+    complement: torchpvs.jacobians): the tip partials ``P_q, P_x`` and the energy's rows
+    ``U_qx, U_xx`` at fixed ``q`` on the layout given (a kink's side or the solution's own),
+    ``Z = H^-1 U_qx``, ``J = P_x - P_q Z`` ``(6, 2N)`` and ``K = sym(U_xx - U_xq Z)``
+    ``(2N, 2N)``."""
+    N = D.shape[1]
+    m = 2 * N
+    nq = q.shape[1]
+    nc = cidx.shape[1]
+    dt = q.dtype
+    Pq = np.empty((6, nq), dtype=dt)
+    Px = np.empty((6, m), dtype=dt)
+    Gq = np.empty((m, nq), dtype=dt)
+    X = np.empty((m, m), dtype=dt)
+    tip_partials_one(q[b], qmask[b], D[b], L[b], Ls[b], coef[b], tau[b], psi0[b], start[b],
+                     h[b], present[b], curved[b], presc[b], tip_tube[b], xm, phi_m, Q_m, Pq,
+                     Px)
+    stiffness_rows_one(q[b], qmask[b], D[b], L[b], Ls[b], EI[b], GJ[b], coef[b], tau[b],
+                       psi0[b], start[b], h[b], present[b], curved[b], active[b], presc[b],
+                       W[b], xq, wq, phi, Qb, Gq, X)
+    G = np.empty((m, nc), dtype=dt)
+    for d in range(m):
+        for i in range(nc):
+            G[d, i] = Gq[d, cidx[b, i]] * qmask_c[b, i]
+    Z = np.empty((nc, m), dtype=dt)
+    Lf = np.empty((nc, nc), dtype=dt)
+    rhs = np.empty(nc, dtype=dt)
+    z = np.empty(nc, dtype=dt)
+    chol = cholesky(H[b], Lf)
+    for d in range(m):
+        for i in range(nc):
+            rhs[i] = G[d, i]
+        if chol:
+            cho_solve(Lf, rhs, z)
+        else:
+            # not positive definite (an unstable equilibrium): pivoted elimination
+            if not lu_solve(H[b].copy(), rhs, z):
+                for i in range(nc):
+                    z[i] = np.nan
+        for i in range(nc):
+            Z[i, d] = z[i] * qmask_c[b, i]
+    for r in range(6):
+        for c in range(m):
+            s = Px[r, c]
+            for i in range(nc):
+                s -= Pq[r, cidx[b, i]] * qmask_c[b, i] * Z[i, c]
+            J[b, r, c] = s
+    for a in range(m):
+        for c in range(m):
+            s = X[c, a]
+            for i in range(nc):
+                s -= G[a, i] * Z[i, c]
+            K[b, a, c] = s
+    for a in range(m):
+        for c in range(a + 1, m):
+            v = 0.5 * (K[b, a, c] + K[b, c, a])
+            K[b, a, c] = v
+            K[b, c, a] = v
+
+
+@cached_jit(nogil=True)
 def _layout_and_track(EI, GJ, L, Ls, coef, D, A, unloaded, xg, wg, xq, wq, xm, n, q_prev,
                       H_prev, cidx_prev, qmc_prev, predict, dA, length, trust, phi, Qb, phi_m,
                       Q_m, small, consts, minimize, max_iter, tau, tip, R, res, it, conv,
-                      verdict):
+                      verdict, jac, D_side, side, J, K):
     """:func:`torchpvs.compiled_layout.layout_maps_arrays` at ``(D, A)`` then :func:`_track`, in
     one call: only what the next step and the caller read is returned to Python, ``(q,
-    H, cidx, qmask_c)`` (boxing each of the layout's 32 arrays costs about a microsecond)."""
-    (ell, _tau, _start, h, _present, _curved, _active, _presc, qmask, psi0, gconst, _W,
+    H, cidx, qmask_c)`` (boxing each of the layout's 32 arrays costs about a microsecond).
+    With ``jac``: the control step into ``J``, ``K`` (:func:`_control_rows`), for the rows
+    where ``side`` at the insertions ``D_side`` (a kink's one side, torchpvs.jacobians) with
+    this ``q`` and ``H`` where the layout there has the same active coordinates, else at the
+    side's own equilibrium (one Newton solve from ``q``); ``side`` then reads 2."""
+    lay = layout_maps_arrays(EI, GJ, L, Ls, coef, D, A, unloaded, 1e-12, xg, wg, xq, wq, xm,
+                             phi, n)
+    (ell, tau_, start, h, present, curved, active, presc, qmask, psi0, gconst, W,
      tip_tube, _s_tip, _before, _sec, psec, cidx, ustar, EIw, EIws, GJw, Hsec, guide,
-     bvec, qmask_c, h_c, _presc_inc, p_h, p_inc, p_held, p_local) = layout_maps_arrays(
-        EI, GJ, L, Ls, coef, D, A, unloaded, 1e-12, xg, wg, xq, wq, xm, phi, n)
+     bvec, qmask_c, h_c, _presc_inc, p_h, p_inc, p_held, p_local) = lay
     B, nq = q_prev.shape
     N = D.shape[1]
     nc = cidx.shape[1]
@@ -192,6 +277,75 @@ def _layout_and_track(EI, GJ, L, Ls, coef, D, A, unloaded, xg, wg, xq, wq, xm, n
            psi0, tip_tube, cidx, qmask_c, bvec, h_c, ustar, EIw, EIws, GJw, Hsec, guide,
            gconst, phi, Qb, psec, p_h, p_inc, p_held, p_local, phi_m, Q_m, h.shape[1], small,
            Lc, consts, minimize, max_iter, tau, q, H, tip, R, res, it, conv, verdict)
+    if not jac:
+        return q, H, cidx, qmask_c
+    any_side = False
+    for b in range(B):
+        any_side = any_side or side[b] > 0
+    lay2 = lay
+    if any_side:
+        lay2 = layout_maps_arrays(EI, GJ, L, Ls, coef, D_side, A, unloaded, 1e-12, xg, wg, xq,
+                                  wq, xm, phi, n)
+    (_ell, tau2, start2, h2, present2, curved2, active2, presc2, qmask2, psi02, gconst2,
+     W2, tip_tube2, _s2, _b2, _sec2, _psec2, cidx2, ustar2, EIw2, EIws2, GJw2, Hsec2,
+     guide2, bvec2, qmask_c2, h_c2, _pi2, _ph2, _pinc2, _pheld2, _ploc2) = lay2
+    nc2 = cidx2.shape[1]
+    q2 = q.copy()
+    H2 = np.empty((B, nc2, nc2), dtype=D.dtype)
+    g2 = np.empty((B, nc2), dtype=D.dtype)
+    U2 = np.empty(B, dtype=D.dtype)
+    res2 = np.empty(B, dtype=D.dtype)
+    it2 = np.zeros(B, dtype=np.int64)
+    conv2 = np.zeros(B, dtype=np.bool_)
+    ver2 = np.empty(B, dtype=np.int8)
+    qc2 = np.empty((B, nc2), dtype=D.dtype)
+    for b in range(B):
+        if side[b] > 0 and not conv[b]:
+            side[b] = 0
+        if not conv[b]:
+            for r in range(J.shape[1]):
+                for c in range(J.shape[2]):
+                    J[b, r, c] = np.nan
+            for r in range(K.shape[1]):
+                for c in range(K.shape[2]):
+                    K[b, r, c] = np.nan
+            continue
+        if side[b] == 0:
+            _control_rows(b, q, H, cidx, qmask_c, qmask, D, L, Ls, EI, GJ, coef, tau_, psi0,
+                          start, h, present, curved, active, presc, W, tip_tube, xq, wq, phi,
+                          Qb, xm, phi_m, Q_m, J, K)
+            continue
+        same = cidx2.shape[1] == cidx.shape[1]
+        if same:
+            for i in range(q.shape[1]):
+                same = same and qmask2[b, i] == qmask[b, i]
+        if same:
+            _control_rows(b, q, H, cidx, qmask_c, qmask2, D_side, L, Ls, EI, GJ, coef, tau2,
+                          psi02, start2, h2, present2, curved2, active2, presc2, W2, tip_tube2,
+                          xq, wq, phi, Qb, xm, phi_m, Q_m, J, K)
+            continue
+        # a coordinate appears on the side (a base leaving the orifice): its own equilibrium
+        side[b] = 2
+        for i in range(cidx2.shape[1]):
+            qc2[b, i] = q[b, cidx2[b, i]] * qmask2[b, cidx2[b, i]]
+        newton_into(b, qc2, qmask_c2, psi02, bvec2, h_c2, ustar2, EIw2, EIws2, GJw2, Hsec2,
+                    guide2, gconst2, phi, Qb, None, Lc, consts, minimize, max_iter, H2, g2,
+                    U2, res2, it2, conv2, ver2)
+        if not conv2[b]:
+            for r in range(J.shape[1]):
+                for c in range(J.shape[2]):
+                    J[b, r, c] = np.nan
+            for r in range(K.shape[1]):
+                for c in range(K.shape[2]):
+                    K[b, r, c] = np.nan
+            continue
+        for i in range(q.shape[1]):
+            q2[b, i] = 0.0
+        for i in range(cidx2.shape[1]):
+            q2[b, cidx2[b, i]] = qc2[b, i]
+        _control_rows(b, q2, H2, cidx2, qmask_c2, qmask2, D_side, L, Ls, EI, GJ, coef, tau2,
+                      psi02, start2, h2, present2, curved2, active2, presc2, W2, tip_tube2,
+                      xq, wq, phi, Qb, xm, phi_m, Q_m, J, K)
     return q, H, cidx, qmask_c
 
 
@@ -260,6 +414,8 @@ class Tracker:
         self._disc = self.options.discretization(self.order)
         dt = torch.float64
         tubes = eq.context.tubes
+        self._tubes_t = tubes
+        self._kink_at = (None, None, None)     # (D, side mask, side insertions) of the last D
         N = scene.n_tubes
         self.N = N
         self._tubes = _Tubes(*(x.detach().numpy().astype(np.float64) for x in
@@ -293,6 +449,9 @@ class Tracker:
                                 for a, k in ((tb.EI, 1), (tb.GJ, 1), (tb.length, 1),
                                              (tb.straight, 1), (tb.coef, 3)))
         self._unloaded = np.zeros(B, dtype=np.bool_)
+        # (placeholders of the compiled call's Jacobian arguments when none are asked for)
+        self._no_side = np.zeros(B, dtype=np.int8)
+        self._no_J, self._no_K = np.empty((B, 6, 2 * N)), np.empty((B, 2 * N, 2 * N))
         self.state = TrackState(q=self._q.copy(), tip=eq.tip_position.detach().numpy().copy(),
                                 R=eq.tip_rotation.detach().numpy().copy(),
                                 converged=eq.converged.numpy().copy(),
@@ -336,11 +495,32 @@ class Tracker:
             raise ValueError(f"{name} must be finite")
         return np.ascontiguousarray(a)
 
-    def step(self, insertion, rotation) -> TrackState:
+    def _kink_side(self, D: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """``(side (B,) int8, D_side (B, N))``: the rows whose insertions sit at a kink of
+        ``U*(D_j)`` and the insertions of the one side :mod:`torchpvs.jacobians` takes there
+        (``KINK_DELTA`` retracted, inserted where the tube's end is at the orifice; nesting
+        kept); kept for the next step at the same insertions."""
+        last_D, side, D_side = self._kink_at
+        if last_D is not None and np.array_equal(last_D, D):
+            return side.copy(), D_side
+        Dt = torch.from_numpy(D)
+        kink = kink_mask(self._tubes_t, Dt).numpy()
+        L = np.broadcast_to(self._tubes.length, D.shape)
+        sign = np.where(np.abs(L - D) <= KINK_DELTA / 2, -1.0, 1.0)
+        D_side = np.maximum.accumulate(D + KINK_DELTA * sign * kink, axis=-1)
+        side = kink.any(-1).astype(np.int8)
+        self._kink_at = (D.copy(), side, D_side)
+        return side.copy(), D_side
+
+    def step(self, insertion, rotation, *, jacobians: bool = False) -> TrackState:
         """The equilibrium at ``insertion`` ``(N,)``/``(B, N)`` [m] and ``rotation`` [rad],
         warm from the last state; becomes :attr:`state`. Elements that did not converge keep
         their result (``converged`` False, ``residual``): the next step starts from it, so a
-        caller that needs a converged state re-solves with :meth:`equilibrium`."""
+        caller that needs a converged state re-solves with :meth:`equilibrium`.
+
+        ``jacobians=True``: the control step, the tip Jacobian and the actuator stiffness at
+        the new equilibrium from its own Hessian (:class:`TrackState`), in the same compiled
+        call."""
         D = self._batched(insertion, "insertion")
         A = self._batched(rotation, "rotation")
         check_actuation(D, self.scene)
@@ -357,13 +537,21 @@ class Tracker:
         it = np.zeros(B, dtype=np.int64)
         conv = np.zeros(B, dtype=np.bool_)
         verdict = np.empty(B, dtype=np.int8)
+        m = 2 * self.N
+        if jacobians:
+            side, D_side = self._kink_side(D)
+            J, K = np.empty((B, 6, m)), np.empty((B, m, m))
+        else:
+            side, D_side, J, K = self._no_side, D, self._no_J, self._no_K
         q, H, cidx, qmask_c = _layout_and_track(
             *self._tube_args, D, A, self._unloaded, xg, wg, xq, wq, xm, self._n, self._q,
             self._H, self._cidx, self._qmc, predict, dA, self._length, PREDICTOR_TRUST,
             self._phi, self._Qb, self._phi_m, self._Q_m, 1e-6, self._consts,
             self.options.method == "minimize", self.options.max_iter, self._tau, tip, R, res,
-            it, conv, verdict)
+            it, conv, verdict, jacobians, D_side, side, J, K)
         self._q, self._H, self._cidx, self._qmc, self._D, self._A = q, H, cidx, qmask_c, D, A
         self.state = TrackState(q=q, tip=tip, R=R, converged=conv, residual=res, iterations=it,
-                                stable=conv & (verdict == 1))
+                                stable=conv & (verdict == 1),
+                                tip_jacobian=J if jacobians else None,
+                                actuator_stiffness=K if jacobians else None)
         return self.state
