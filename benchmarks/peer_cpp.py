@@ -344,11 +344,11 @@ def bench(args, lib_path: Path) -> dict:
     ins_np = ins.numpy()
     rot1_np = rot1.numpy()
 
-    def tracker_steps():
+    def tracker_steps(jacobians=False):
         out = []
         for t, s, r in zip(trackers, snaps, rot1_np, strict=True):
             t.restore(s)
-            out.append(t.step(ins_np, r))
+            out.append(t.step(ins_np, r, jacobians=jacobians))
         return out
     batch_tracker = torchpvs.Tracker(scene, rotation=R0, initial=E0)
     batch_snap = batch_tracker.snapshot()
@@ -369,6 +369,7 @@ def bench(args, lib_path: Path) -> dict:
                             .jacobians(compliance=False) for r, e in pairs],
         "batch": lambda: torchpvs.solve(scene, rotation=R1, initial=E0),
         "tracker": tracker_steps,
+        "tracker_control": lambda: tracker_steps(jacobians=True),
         "tracker_batch": tracker_batch,
     }
     cases = {f"peer_{k}_{s}": (fn, None) for (k, s), (fn, _) in peer_calls.items()}
@@ -382,6 +383,8 @@ def bench(args, lib_path: Path) -> dict:
         if k == "warm":
             ordered["torchpvs_warm_tip"] = (None, tp["warm_tip"])
             ordered["torchpvs_tracker"] = (None, tp["tracker"])
+        if k == "control":
+            ordered["torchpvs_tracker_control"] = (None, tp["tracker_control"])
         if k == "batch":
             ordered["torchpvs_tracker_batch"] = (None, tp["tracker_batch"])
     best = time_rounds(ordered, args.repeat)
@@ -406,6 +409,8 @@ def bench(args, lib_path: Path) -> dict:
     out["warm_tip_ratio"] = out["torchpvs_warm_tip_ms"] / out["peer_warm_ms"]
     out["torchpvs_tracker_ms"] = 1e3 * best["torchpvs_tracker"][1] / C
     out["tracker_ratio"] = out["torchpvs_tracker_ms"] / out["peer_warm_ms"]
+    out["torchpvs_tracker_control_ms"] = 1e3 * best["torchpvs_tracker_control"][1] / C
+    out["tracker_control_ratio"] = out["torchpvs_tracker_control_ms"] / out["peer_control_ms"]
     out["torchpvs_tracker_batch_ms"] = 1e3 * best["torchpvs_tracker_batch"][1] / B
     out["tracker_batch_ratio"] = out["torchpvs_tracker_batch_ms"] / out["peer_warm_ms"]
     out["tracker_order"], out["tracker_n_magnus"] = trackers[0].order, trackers[0].n_magnus
@@ -536,6 +541,9 @@ def _print(r: dict) -> None:
           f"{r['warm_tip_ratio']:>11.2f}{'-':>9}{'-':>5}")
     print(f"{'Tracker.step B=1 (tip only)':<30}{r['peer_warm_ms']:>10.4f}"
           f"{r['torchpvs_tracker_ms']:>13.4f}{r['tracker_ratio']:>11.2f}{'-':>9}{'-':>5}")
+    print(f"{'Tracker control step B=1':<30}{r['peer_control_ms']:>10.4f}"
+          f"{r['torchpvs_tracker_control_ms']:>13.4f}{r['tracker_control_ratio']:>11.2f}"
+          f"{'-':>9}{'-':>5}")
     label = f"Tracker.step B={r['batch']}, per solve"
     print(f"{label:<30}{r['peer_warm_ms']:>10.4f}{r['torchpvs_tracker_batch_ms']:>13.4f}"
           f"{r['tracker_batch_ratio']:>11.2f}{'-':>9}{'-':>5}")
@@ -543,7 +551,8 @@ def _print(r: dict) -> None:
           "without actuation forces, SolverOptions(compute_forces=False), the peer's output;\n"
           f"   Tracker: torchpvs.Tracker's fused warm step at the discretization of its first "
           f"solve, order {r['tracker_order']}, {r['tracker_n_magnus']} Magnus steps, no "
-          f"order check; tips {r['tip_max_diff_tracker_m']:.2e} m from the peer's)")
+          f"order check; tips {r['tip_max_diff_tracker_m']:.2e} m from the peer's; its control "
+          f"step: step(jacobians=True), the tip Jacobian and the actuator stiffness)")
     for k in ("warm", "cold", "control"):
         alts = ", ".join(f"{s} {v:.4f}" for s, v in r[f"peer_{k}_strategy_ms"].items())
         print(f"peer {k}: {r[f'peer_{k}_newton_steps']:.2f} Newton steps, "

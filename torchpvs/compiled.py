@@ -1632,6 +1632,17 @@ def tip_actuator_partials(q, qmask, D, L, Ls, coef, tau, psi0, start, h, present
     ``D + Ds`` and rotations moved by ``As`` (real shifts along the layout's slopes, its
     sections and masks unchanged; zero: the layout's own), by a complex step of
     :func:`tip_twist_core` per actuator (exact to rounding: no difference is taken)."""
+    tip_directional(q, None, qmask, D, L, Ls, coef, tau, psi0, start, h, present, curved,
+                    presc, tip_tube, xm, phi, Qb, Ds, As, Px)
+
+
+@_jit
+def tip_directional(q, dq, qmask, D, L, Ls, coef, tau, psi0, start, h, present, curved,
+                    presc, tip_tube, xm, phi, Qb, Ds, As, Px):
+    """:func:`tip_actuator_partials` (``dq`` None) or, with ``dq (nq, 2N)``, the tip twist's
+    derivative along each actuator ``d`` with the coordinates moving by ``dq[:, d]`` per unit
+    actuation: ``Px[:, d] + P_q dq[:, d]`` in one complex step of the pose (the total
+    derivative ``d(tip)/dx`` where ``dq = dq*/dx``, without forming ``P_q``)."""
     N = D.shape[0]
     eps = 1e-20
     Dc = np.empty(N, dtype=np.complex128)
@@ -1639,6 +1650,7 @@ def tip_actuator_partials(q, qmask, D, L, Ls, coef, tau, psi0, start, h, present
     tip = np.empty(3, dtype=np.complex128)
     R = np.empty((3, 3), dtype=np.complex128)
     W = np.empty((3, 3))
+    qz = np.empty(q.shape[0], dtype=np.complex128)
     for d in range(2 * N):          # the insertions, then the rotations
         for j in range(N):
             Dc[j] = D[j] + Ds[j]
@@ -1647,8 +1659,15 @@ def tip_actuator_partials(q, qmask, D, L, Ls, coef, tau, psi0, start, h, present
             Dc[d] += 1j * eps
         else:
             dA[d - N] += 1j * eps
-        tip_twist_core(q, Dc, dA, qmask, D, L, Ls, coef, tau, psi0, start, h, present, curved,
-                       presc, tip_tube, xm, phi, Qb, 1e-6, tip, R)
+        # two call sites, not an optional value: numba prunes the one a None dq cannot take
+        if dq is None:
+            tip_twist_core(q, Dc, dA, qmask, D, L, Ls, coef, tau, psi0, start, h, present,
+                           curved, presc, tip_tube, xm, phi, Qb, 1e-6, tip, R)
+        else:
+            for i in range(q.shape[0]):
+                qz[i] = q[i] + 1j * eps * dq[i, d]
+            tip_twist_core(qz, Dc, dA, qmask, D, L, Ls, coef, tau, psi0, start, h, present,
+                           curved, presc, tip_tube, xm, phi, Qb, 1e-6, tip, R)
         col = Px[:, d]
         for i in range(3):
             col[i] = tip[i].imag / eps

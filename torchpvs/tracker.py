@@ -42,7 +42,7 @@ from .compiled import (
     newton_into,
     pose_one,
     stiffness_rows_one,
-    tip_partials_one,
+    tip_directional,
 )
 from .compiled_layout import layout_maps_arrays
 from .compiled_load import cached_jit
@@ -184,22 +184,18 @@ def _control_rows(b, q, H, cidx, qmask_c, qmask, D, L, Ls, EI, GJ, coef, tau, ps
                   present, curved, active, presc, W, tip_tube, xq, wq, phi, Qb, xm, phi_m, Q_m,
                   J, K):
     """Element ``b``'s control step at ``q`` with the compact Hessian ``H`` (its Schur
-    complement: torchpvs.jacobians): the tip partials ``P_q, P_x`` and the energy's rows
-    ``U_qx, U_xx`` at fixed ``q`` on the layout given (a kink's side or the solution's own),
-    ``Z = H^-1 U_qx``, ``J = P_x - P_q Z`` ``(6, 2N)`` and ``K = sym(U_xx - U_xq Z)``
-    ``(2N, 2N)``."""
+    complement: torchpvs.jacobians): the energy's rows ``U_qx, U_xx`` at fixed ``q`` on the
+    layout given (a kink's side or the solution's own), ``Z = H^-1 U_qx``, ``K = sym(U_xx -
+    U_xq Z)`` ``(2N, 2N)`` and ``J = P_x - P_q Z`` ``(6, 2N)`` as one complex step of the
+    tip pose per actuator with ``q`` moving by ``-Z`` (:func:`torchpvs.compiled.
+    tip_directional`: ``P_q``, 6 x nq through the Magnus chain, is never formed)."""
     N = D.shape[1]
     m = 2 * N
     nq = q.shape[1]
     nc = cidx.shape[1]
     dt = q.dtype
-    Pq = np.empty((6, nq), dtype=dt)
-    Px = np.empty((6, m), dtype=dt)
     Gq = np.empty((m, nq), dtype=dt)
     X = np.empty((m, m), dtype=dt)
-    tip_partials_one(q[b], qmask[b], D[b], L[b], Ls[b], coef[b], tau[b], psi0[b], start[b],
-                     h[b], present[b], curved[b], presc[b], tip_tube[b], xm, phi_m, Q_m, Pq,
-                     Px)
     stiffness_rows_one(q[b], qmask[b], D[b], L[b], Ls[b], EI[b], GJ[b], coef[b], tau[b],
                        psi0[b], start[b], h[b], present[b], curved[b], active[b], presc[b],
                        W[b], xq, wq, phi, Qb, Gq, X)
@@ -224,12 +220,14 @@ def _control_rows(b, q, H, cidx, qmask_c, qmask, D, L, Ls, EI, GJ, coef, tau, ps
                     z[i] = np.nan
         for i in range(nc):
             Z[i, d] = z[i] * qmask_c[b, i]
-    for r in range(6):
+    dq = np.zeros((nq, m), dtype=dt)       # dq*/dx = -Z on the padded coordinates
+    for i in range(nc):
         for c in range(m):
-            s = Px[r, c]
-            for i in range(nc):
-                s -= Pq[r, cidx[b, i]] * qmask_c[b, i] * Z[i, c]
-            J[b, r, c] = s
+            dq[cidx[b, i], c] = -Z[i, c] * qmask_c[b, i]
+    zero = np.zeros(N, dtype=dt)
+    tip_directional(q[b], dq, qmask[b], D[b], L[b], Ls[b], coef[b], tau[b], psi0[b],
+                    start[b], h[b], present[b], curved[b], presc[b], tip_tube[b], xm, phi_m,
+                    Q_m, zero, zero, J[b])
     for a in range(m):
         for c in range(m):
             s = X[c, a]
