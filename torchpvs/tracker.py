@@ -58,7 +58,8 @@ from .sections import n_coordinates
 __all__ = ["Tracker", "TrackState"]
 
 
-class TrackState(NamedTuple):
+@dataclass(frozen=True)
+class TrackState:
     """One :meth:`Tracker.step`'s result, numpy arrays over the batch ``B``.
 
     q: ``(B, nq)`` generalized coordinates (the padded layout of :class:`Equilibrium.q`).
