@@ -11,7 +11,9 @@ one torch thread, rounds interleaved, best of ``--repeat``, ms per solve:
 * ``solve`` warm, default options (automatic order and Magnus checks, actuation forces);
 * ``solve`` warm at the tracker's fixed discretization, tip only
   (``SolverOptions(order=k, n_magnus=m, compute_forces=False)``: what the tracker computes);
-* ``Tracker.step`` (restored to the warm state before each step; the restore is timed too);
+* ``Tracker.step`` (restored to the warm state before each step; the restore is timed too),
+  and with ``forces=True`` (the actuation forces the default solve computes, one-sided at
+  kinks);
 * control step: ``solve(...).jacobians(compliance=False)`` against
   ``Tracker.step(..., jacobians=True)``;
 * a batch of ``--batch`` (the configurations repeated): one batched ``solve`` against one
@@ -89,11 +91,11 @@ def bench(name: str, configs: int, batch: int, repeat: int) -> dict:
     big_snap = big.snapshot()
     ins_B = np.repeat(ins[None], batch, 0)
 
-    def steps(jac=False):
+    def steps(jac=False, forces=False):
         out = []
         for t, s, r in zip(trackers, snaps, rot1, strict=True):
             t.restore(s)
-            out.append(t.step(ins, r, jacobians=jac))
+            out.append(t.step(ins, r, jacobians=jac, forces=forces))
         return out
 
     def big_step():
@@ -106,6 +108,7 @@ def bench(name: str, configs: int, batch: int, repeat: int) -> dict:
         "solve_fixed_tip": lambda: [torchpvs.solve(scene, rotation=r, initial=e, options=fixed)
                                     for r, e in zip(r1, fixed_warm, strict=True)],
         "tracker": steps,
+        "tracker_forces": lambda: steps(forces=True),
         "solve_control": lambda: [torchpvs.solve(scene, rotation=r, initial=e)
                                   .jacobians(compliance=False)
                                   for r, e in zip(r1, warm, strict=True)],
@@ -132,7 +135,9 @@ def report(r: dict) -> None:
     ms = r["ms"]
     print(f"\n== {r['robot']} ({r['tubes']} tubes), {r['configs']} configurations, one thread, "
           f"best of {r['repeat']}; tracker at order {r['order']}, {r['n_magnus']} Magnus steps")
-    rows = [("warm B=1, default solve", "solve_default", "tracker"),
+    rows = [("warm B=1, default solve (forces) / Tracker forces=True", "solve_default",
+             "tracker_forces"),
+            ("warm B=1, default solve / Tracker tip only", "solve_default", "tracker"),
             ("warm B=1, solve at the tracker's discretization, tip only", "solve_fixed_tip",
              "tracker"),
             ("control step B=1 (jacobians)", "solve_control", "tracker_control"),

@@ -264,3 +264,39 @@ def test_control_step_batched_three_tubes_against_differences():
     np.testing.assert_array_equal(K, np.swapaxes(K, 1, 2))
     common = np.array([0, 0, 0, 1.0, 1.0, 1.0])
     assert np.abs(K @ common).max() < 1e-9 * np.abs(K).max()
+
+
+@pytest.mark.parametrize("case", ["transition_at_orifice", "base_at_orifice", "no_kink",
+                                  "three_tubes"])
+def test_forces_match_the_solver_with_their_one_sided_values(case):
+    """``step(..., forces=True)``: the actuation forces and torques, their insertion side and
+    the kink mask equal ``torchpvs.solve``'s at the tracker's discretization (within 1e-9 N;
+    NaN at the same blocked entries). Cases: the Fig. 3 scene, whose outer tube's curved part
+    starts at the orifice (a kink: its sides at the same active coordinates); the outer base at
+    the orifice (``D_1 = 0``: the retraction side gains the guide twist, one Newton step; the
+    insertion side is blocked); 1 mm off every kink; a three-tube batch."""
+    from torchpvs.testing import nested_scene
+    scene = tp.load_scene("renda2021_fig3")
+    D = np.array([scene.actuation.insertion])
+    A = np.array([[0.3, 1.2]])
+    if case == "base_at_orifice":
+        D = D.copy()
+        D[0, 0] = 0.0
+    elif case == "no_kink":
+        D = D + 1e-3
+    elif case == "three_tubes":
+        scene = nested_scene(3, seed=6)
+        D = np.repeat(np.array([scene.actuation.insertion]), 2, 0) + np.array([[0.0], [1e-3]])
+        A = np.array([[0.1, -0.4, 0.9], [1.0, 0.2, -0.3]])
+    tr = tp.Tracker(scene, insertion=D, rotation=A)
+    s = tr.step(D, A + 0.02, forces=True)
+    eq = tr.equilibrium(tp.SolverOptions(order=tr.order, n_magnus=tr.n_magnus))
+    assert s.converged.all()
+    np.testing.assert_array_equal(s.force_kink, eq.force_kink.numpy())
+    for name in ("actuation_forces", "actuation_torques", "actuation_forces_insertion"):
+        np.testing.assert_allclose(getattr(s, name), getattr(eq, name).numpy(), atol=1e-9,
+                                   rtol=0, err_msg=name)
+    if case != "no_kink" and case != "three_tubes":
+        assert s.force_kink[0, 0]
+    if case == "base_at_orifice":
+        assert np.isnan(s.actuation_forces_insertion[0, 0])

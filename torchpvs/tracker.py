@@ -40,7 +40,10 @@ from .compiled import (
     cholesky,
     lu_solve,
     newton_into,
+    partials_one,
     pose_one,
+    section_step_one,
+    step_one,
     stiffness_rows_one,
     tip_directional,
 )
@@ -48,6 +51,7 @@ from .compiled_layout import layout_maps_arrays
 from .compiled_load import cached_jit
 from .forces import KINK_DELTA, kink_mask
 from .inputs import check_actuation
+from .kernel import VANISHING
 from .newton import stability_threshold, tolerance
 from .options import SolverOptions
 from .order_control import newton_tol
@@ -73,6 +77,11 @@ class TrackState:
     ``(B, 2N, 2N)`` ``dtau/dx`` [N/m, N, N·m] (:mod:`torchpvs.jacobians`' closed forms, the
     same one-sided rule at a kink); both ``None`` unless the step was asked for them, NaN
     rows where it did not converge.
+    actuation_forces, actuation_torques, actuation_forces_insertion: ``(B, N)`` [N], [N·m]
+    ``dU*/dD`` and ``dU*/dalpha`` as :class:`~torchpvs.Equilibrium` reports them (the
+    retraction side at a kink, the insertion side beside it, NaN where a carriage cannot move
+    in), force_kink ``(B, N)`` where ``U*(D_j)`` has a kink; ``None`` unless asked for, NaN
+    rows where the step did not converge.
     """
 
     q: np.ndarray
@@ -84,6 +93,10 @@ class TrackState:
     stable: np.ndarray
     tip_jacobian: np.ndarray | None = None
     actuator_stiffness: np.ndarray | None = None
+    actuation_forces: np.ndarray | None = None
+    actuation_torques: np.ndarray | None = None
+    actuation_forces_insertion: np.ndarray | None = None
+    force_kink: np.ndarray | None = None
 
 
 @cached_jit(nogil=True)
@@ -243,17 +256,75 @@ def _control_rows(b, q, H, cidx, qmask_c, qmask, D, L, Ls, EI, GJ, coef, tau, ps
 
 
 @cached_jit(nogil=True)
+def _side_forces(q, qmask, conv, sel, sj, Dn, EI, GJ, L, Ls, coef, A, unloaded, xg, wg, xq, wq,
+                 xm, phi, Qb, n, hmax, tiny, vals):
+    """The one-sided insertion forces at kinks (torchpvs.forces.equilibrium_forces with the
+    driver's SolutionResolver.near): for each side ``r``, element ``sel[r]`` at the insertions
+    ``Dn[r]`` (``delta`` to one side), its coordinates ``q`` on the layout there where that has
+    the same active coordinates (envelope theorem: no solve), else with a section that appears
+    solved for with the rest held (the new-section step) or, where that does not apply, one
+    Newton step; ``vals[r]`` is ``dU/dD_j`` there, ``j = sj[r]`` (NaN where the element did not
+    converge)."""
+    nq = q.shape[1]
+    N = Dn.shape[1]
+    tD = np.empty(N, dtype=q.dtype)
+    tA = np.empty(N, dtype=q.dtype)
+    for r in range(sel.shape[0]):
+        b = sel[r]
+        if not conv[b]:
+            vals[r] = np.nan
+            continue
+        (_ell, tau_, start, h, present, curved, active, presc, qm, psi0, gconst, W, _tt,
+         _st, _bl, _sec, _psec, cidx, ustar, EIw, EIws, GJw, Hsec, guide, bvec, qmask_c, h_c,
+         _pi, _ph, _pinc, _pheld, _ploc) = layout_maps_arrays(
+            EI[b:b + 1], GJ[b:b + 1], L[b:b + 1], Ls[b:b + 1], coef[b:b + 1], Dn[r:r + 1],
+            A[b:b + 1], unloaded[:1], 1e-12, xg, wg, xq, wq, xm, phi, n)
+        q1 = np.empty((1, nq), dtype=q.dtype)
+        moved = False
+        for i in range(nq):
+            q1[0, i] = q[b, i] * qm[0, i]
+            moved = moved or qm[0, i] != qmask[b, i]
+        if moved:
+            nc = cidx.shape[1]
+            qc = np.empty(nc, dtype=q.dtype)
+            newc = np.empty(nc, dtype=np.bool_)
+            for i in range(nc):
+                c = cidx[0, i]
+                qc[i] = q1[0, c]
+                newc[i] = qm[0, c] > 0 and not qmask[b, c] > 0
+            ok = section_step_one(qc, qmask_c[0], psi0[0], bvec[0], h_c[0], ustar[0], EIw[0],
+                                  EIws[0], GJw[0], Hsec[0], guide[0], gconst[0], phi, Qb,
+                                  newc, hmax)
+            if not ok:
+                ok = step_one(qc, qmask_c[0], psi0[0], bvec[0], h_c[0], ustar[0], EIw[0],
+                              EIws[0], GJw[0], Hsec[0], guide[0], gconst[0], phi, Qb, None,
+                              tiny)
+            if ok:
+                for i in range(nq):
+                    q1[0, i] = 0.0
+                for i in range(nc):
+                    q1[0, cidx[0, i]] = qc[i]
+        partials_one(q1[0], qm[0], Dn[r], L[b], Ls[b], EI[b], GJ[b], coef[b], tau_[0],
+                     psi0[0], start[0], h[0], present[0], curved[0], active[0], presc[0], W[0],
+                     xq, wq, phi, Qb, tD, tA)
+        vals[r] = tD[sj[r]]
+
+
+@cached_jit(nogil=True)
 def _layout_and_track(EI, GJ, L, Ls, coef, D, A, unloaded, xg, wg, xq, wq, xm, n, q_prev,
                       H_prev, cidx_prev, qmc_prev, predict, dA, length, trust, phi, Qb, phi_m,
                       Q_m, small, consts, minimize, max_iter, tau, tip, R, res, it, conv,
-                      verdict, jac, D_side, side, J, K):
+                      verdict, jac, D_side, side, J, K, want_forces, tau_D, tau_A, sel, sj, Dn,
+                      hmax, side_vals):
     """:func:`torchpvs.compiled_layout.layout_maps_arrays` at ``(D, A)`` then :func:`_track`, in
     one call: only what the next step and the caller read is returned to Python, ``(q,
     H, cidx, qmask_c)`` (boxing each of the layout's 32 arrays costs about a microsecond).
     With ``jac``: the control step into ``J``, ``K`` (:func:`_control_rows`), for the rows
     where ``side`` at the insertions ``D_side`` (a kink's one side, torchpvs.jacobians) with
     this ``q`` and ``H`` where the layout there has the same active coordinates, else at the
-    side's own equilibrium (one Newton solve from ``q``); ``side`` then reads 2."""
+    side's own equilibrium (one Newton solve from ``q``); ``side`` then reads 2. With
+    ``want_forces``: the actuation forces and torques at the solution into ``tau_D, tau_A``
+    and the one-sided values at its kinks into ``side_vals`` (:func:`_side_forces`)."""
     lay = layout_maps_arrays(EI, GJ, L, Ls, coef, D, A, unloaded, 1e-12, xg, wg, xq, wq, xm,
                              phi, n)
     (ell, tau_, start, h, present, curved, active, presc, qmask, psi0, gconst, W,
@@ -276,6 +347,18 @@ def _layout_and_track(EI, GJ, L, Ls, coef, D, A, unloaded, xg, wg, xq, wq, xm, n
            psi0, tip_tube, cidx, qmask_c, bvec, h_c, ustar, EIw, EIws, GJw, Hsec, guide,
            gconst, phi, Qb, psec, p_h, p_inc, p_held, p_local, phi_m, Q_m, h.shape[1], small,
            Lc, consts, minimize, max_iter, tau, q, H, tip, R, res, it, conv, verdict)
+    if want_forces:
+        for b in range(B):
+            if conv[b]:
+                partials_one(q[b], qmask[b], D[b], L[b], Ls[b], EI[b], GJ[b], coef[b], tau_[b],
+                             psi0[b], start[b], h[b], present[b], curved[b], active[b],
+                             presc[b], W[b], xq, wq, phi, Qb, tau_D[b], tau_A[b])
+            else:
+                for j in range(N):
+                    tau_D[b, j] = np.nan
+                    tau_A[b, j] = np.nan
+        _side_forces(q, qmask, conv, sel, sj, Dn, EI, GJ, L, Ls, coef, A, unloaded, xg, wg,
+                     xq, wq, xm, phi, Qb, n, hmax, consts[3], side_vals)
     if not jac:
         return q, H, cidx, qmask_c
     any_side = False
@@ -451,6 +534,10 @@ class Tracker:
         # (placeholders of the compiled call's Jacobian arguments when none are asked for)
         self._no_side = np.zeros(B, dtype=np.int8)
         self._no_J, self._no_K = np.empty((B, 6, 2 * N)), np.empty((B, 2 * N, 2 * N))
+        self._no_sel, self._no_Dn = np.zeros(0, dtype=np.int64), np.zeros((0, N))
+        self._no_tau, self._no_vals = np.empty((B, N)), np.empty(0)
+        self._force_plan = (None, None)
+        self._hmax = VANISHING * self._length
         self.state = TrackState(q=self._q.copy(), tip=eq.tip_position.detach().numpy().copy(),
                                 R=eq.tip_rotation.detach().numpy().copy(),
                                 converged=eq.converged.numpy().copy(),
@@ -511,7 +598,31 @@ class Tracker:
         self._kink_at = (D.copy(), side, D_side)
         return side.copy(), D_side
 
-    def step(self, insertion, rotation, *, jacobians: bool = False) -> TrackState:
+    def _kink_plan(self, D: np.ndarray):
+        """The one-sided forces' sides (torchpvs.forces.equilibrium_forces): ``(kink (B, N),
+        blocked (B, N), sel, sj, Dn, n_retract)``: every kink ``(sel, sj)`` retracted by
+        ``KINK_DELTA``, then those whose carriage can move in inserted; ``Dn`` the sides'
+        insertions (nesting kept). Kept for the next step at the same insertions."""
+        last_D, plan = self._force_plan
+        if last_D is not None and np.array_equal(last_D, D):
+            return plan
+        kink = kink_mask(self._tubes_t, torch.from_numpy(D)).numpy()
+        prev = np.concatenate([np.zeros_like(D[:, :1]), D[:, :-1]], -1)
+        blocked = D - KINK_DELTA < prev
+        rows_b, rows_j = np.nonzero(kink)
+        can_insert = ~blocked[rows_b, rows_j]
+        sel = np.concatenate([rows_b, rows_b[can_insert]]).astype(np.int64)
+        sj = np.concatenate([rows_j, rows_j[can_insert]]).astype(np.int64)
+        sign = np.concatenate([np.ones(len(rows_b)), -np.ones(int(can_insert.sum()))])
+        Dn = D[sel].copy()
+        Dn[np.arange(len(sel)), sj] += KINK_DELTA * sign
+        Dn = np.ascontiguousarray(np.maximum.accumulate(Dn, axis=-1))
+        plan = (kink, blocked, sel, sj, Dn, len(rows_b))
+        self._force_plan = (D.copy(), plan)
+        return plan
+
+    def step(self, insertion, rotation, *, jacobians: bool = False,
+             forces: bool = False) -> TrackState:
         """The equilibrium at ``insertion`` ``(N,)``/``(B, N)`` [m] and ``rotation`` [rad],
         warm from the last state; becomes :attr:`state`. Elements that did not converge keep
         their result (``converged`` False, ``residual``): the next step starts from it, so a
@@ -519,7 +630,8 @@ class Tracker:
 
         ``jacobians=True``: the control step, the tip Jacobian and the actuator stiffness at
         the new equilibrium from its own Hessian (:class:`TrackState`), in the same compiled
-        call."""
+        call. ``forces=True``: the actuation forces and torques that hold it (closed form,
+        one-sided at kinks as :func:`torchpvs.solve` reports them), in the same call."""
         D = self._batched(insertion, "insertion")
         A = self._batched(rotation, "rotation")
         check_actuation(D, self.scene)
@@ -542,15 +654,31 @@ class Tracker:
             J, K = np.empty((B, 6, m)), np.empty((B, m, m))
         else:
             side, D_side, J, K = self._no_side, D, self._no_J, self._no_K
+        if forces:
+            kink, blocked, sel, sj, Dn, n_r = self._kink_plan(D)
+            tD, tA, vals = np.empty((B, self.N)), np.empty((B, self.N)), np.empty(len(sel))
+        else:
+            sel, sj, Dn = self._no_sel, self._no_sel, self._no_Dn
+            tD, tA, vals = self._no_tau, self._no_tau, self._no_vals
         q, H, cidx, qmask_c = _layout_and_track(
             *self._tube_args, D, A, self._unloaded, xg, wg, xq, wq, xm, self._n, self._q,
             self._H, self._cidx, self._qmc, predict, dA, self._length, PREDICTOR_TRUST,
             self._phi, self._Qb, self._phi_m, self._Q_m, 1e-6, self._consts,
             self.options.method == "minimize", self.options.max_iter, self._tau, tip, R, res,
-            it, conv, verdict, jacobians, D_side, side, J, K)
+            it, conv, verdict, jacobians, D_side, side, J, K, forces, tD, tA, sel, sj, Dn,
+            self._hmax, vals)
+        out = {}
+        if forces:
+            retract = tD.copy()
+            retract[sel[:n_r], sj[:n_r]] = vals[:n_r]
+            ins = tD.copy()
+            ins[blocked] = np.nan
+            ins[sel[n_r:], sj[n_r:]] = vals[n_r:]
+            out = {"actuation_forces": retract, "actuation_torques": tA,
+                   "actuation_forces_insertion": ins, "force_kink": kink.copy()}
         self._q, self._H, self._cidx, self._qmc, self._D, self._A = q, H, cidx, qmask_c, D, A
         self.state = TrackState(q=q, tip=tip, R=R, converged=conv, residual=res, iterations=it,
                                 stable=conv & (verdict == 1),
                                 tip_jacobian=J if jacobians else None,
-                                actuator_stiffness=K if jacobians else None)
+                                actuator_stiffness=K if jacobians else None, **out)
         return self.state
