@@ -139,9 +139,18 @@ def test_a_step_too_far_for_its_iterations_reports_it():
     scene = tp.load_scene("renda2021_fig3")
     # (the first solve, warm from the scene's equilibrium, needs no iteration)
     tr = tp.Tracker(scene, options=tp.SolverOptions(max_iter=1), initial=tp.solve(scene))
+    snap = tr.snapshot()
     s = tr.step(scene.actuation.insertion, [0.0, math.radians(90)])
     assert not s.converged[0] and not s.stable[0]
     assert np.isfinite(s.residual[0]) and s.residual[0] > tr.options.tol
+    # what holds an equilibrium is not reported for a state that is not one
+    tr.restore(snap)
+    s = tr.step(scene.actuation.insertion, [0.0, math.radians(90)], jacobians=True,
+                forces=True)
+    assert not s.converged[0]
+    for name in ("tip_jacobian", "actuator_stiffness", "actuation_forces",
+                 "actuation_torques"):
+        assert np.isnan(getattr(s, name)).all(), name
 
 
 def test_bad_inputs_name_the_field():

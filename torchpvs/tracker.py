@@ -311,6 +311,13 @@ def _side_forces(q, qmask, conv, sel, sj, Dn, EI, GJ, L, Ls, coef, A, unloaded, 
 
 
 @cached_jit(nogil=True)
+def _no_rows(b, J, K):
+    """Element ``b``'s control step where there is no equilibrium to take it at: NaN."""
+    J[b] = np.nan
+    K[b] = np.nan
+
+
+@cached_jit(nogil=True)
 def _layout_and_track(EI, GJ, L, Ls, coef, D, A, unloaded, xg, wg, xq, wq, xm, n, q_prev,
                       H_prev, cidx_prev, qmc_prev, predict, dA, length, trust, phi, Qb, phi_m,
                       Q_m, small, consts, minimize, max_iter, tau, tip, R, res, it, conv,
@@ -385,12 +392,7 @@ def _layout_and_track(EI, GJ, L, Ls, coef, D, A, unloaded, xg, wg, xq, wq, xm, n
         if side[b] > 0 and not conv[b]:
             side[b] = 0
         if not conv[b]:
-            for r in range(J.shape[1]):
-                for c in range(J.shape[2]):
-                    J[b, r, c] = np.nan
-            for r in range(K.shape[1]):
-                for c in range(K.shape[2]):
-                    K[b, r, c] = np.nan
+            _no_rows(b, J, K)
             continue
         if side[b] == 0:
             _control_rows(b, q, H, cidx, qmask_c, qmask, D, L, Ls, EI, GJ, coef, tau_, psi0,
@@ -414,12 +416,7 @@ def _layout_and_track(EI, GJ, L, Ls, coef, D, A, unloaded, xg, wg, xq, wq, xm, n
                     guide2, gconst2, phi, Qb, None, Lc, consts, minimize, max_iter, H2, g2,
                     U2, res2, it2, conv2, ver2)
         if not conv2[b]:
-            for r in range(J.shape[1]):
-                for c in range(J.shape[2]):
-                    J[b, r, c] = np.nan
-            for r in range(K.shape[1]):
-                for c in range(K.shape[2]):
-                    K[b, r, c] = np.nan
+            _no_rows(b, J, K)
             continue
         for i in range(q.shape[1]):
             q2[b, i] = 0.0
