@@ -18,6 +18,7 @@ EXAMPLES = {
     "design_optimization.py": ([], "design_optimization.png"),
     "force_controller.py": ([], "force_controller.png"),
     "calibration.py": (["--measurements", "20"], "calibration.png"),
+    "control_loop.py": (["--seconds", "0.5"], "control_loop.png"),
 }
 
 

@@ -309,3 +309,36 @@ def test_forces_match_the_solver_with_their_one_sided_values(case):
         assert s.force_kink[0, 0]
     if case == "base_at_orifice":
         assert np.isnan(s.actuation_forces_insertion[0, 0])
+
+
+def test_compiled_kink_mask_is_the_solvers():
+    """The tracker's compiled kink mask (``force_kink``) equals ``torchpvs.forces.kink_mask``
+    on insertions at every kind of kink (a base, a straight-to-curved transition at the
+    orifice, an inner tube's end level with the outer tube's) within and just beyond its
+    tolerance, and on random ones."""
+    from torchpvs.forces import KINK_TOL, kink_mask
+    from torchpvs.testing import nested_scene
+    for scene in (tp.load_scene("renda2021_fig3"), nested_scene(3, seed=7)):
+        L = np.array([t.length for t in scene.tubes])
+        Ls = np.array([t.straight_length for t in scene.tubes])
+        D0 = np.array(scene.actuation.insertion)
+        N = len(L)
+        rows = [D0, np.zeros(N)]
+        for j in range(N):
+            for target in (Ls[j], 0.0):
+                for off in (0.0, 0.5 * KINK_TOL, 2 * KINK_TOL, -3e-4):
+                    D = D0.copy()
+                    D[j] = max(target + off, 0.0)
+                    rows.append(np.maximum.accumulate(D))
+        D = D0.copy()       # the inner tube's end level with the outer tube's
+        D[1] = D[0] + (L[1] - L[0])
+        rows.append(np.maximum.accumulate(D))
+        rng = np.random.default_rng(8)
+        rows += [np.sort(rng.uniform(0, Ls.min(), N)) for _ in range(10)]
+        D = np.array(rows)
+        A = np.zeros_like(D)
+        tr = tp.Tracker(scene, insertion=D, rotation=A)
+        got = tr.step(D, A, forces=True).force_kink
+        expected = kink_mask(tp.solve(scene).context.tubes, torch.tensor(D)).numpy()
+        np.testing.assert_array_equal(got, expected)
+        assert expected.any() and not expected.all()

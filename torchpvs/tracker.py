@@ -49,7 +49,7 @@ from .compiled import (
 )
 from .compiled_layout import layout_maps_arrays
 from .compiled_load import cached_jit
-from .forces import KINK_DELTA, kink_mask
+from .forces import KINK_DELTA, KINK_TOL
 from .kernel import VANISHING
 from .newton import stability_threshold, tolerance
 from .options import SolverOptions
@@ -341,6 +341,47 @@ def _check_and_wrap(D, A, D_prev, A_prev, predict, dA):
     return 0
 
 
+@cached_jit(nogil=True)
+def _kink_mask(L, Ls, curved, D, tol, kink):
+    """:func:`torchpvs.forces.kink_mask` in one compiled call (its torch form is about 40
+    operations, more than a whole tracker step when the insertions change at every step):
+    ``kink (B, N)`` where a tube's base, straight-to-curved transition or end is at the
+    orifice, or a cut that moves with ``D_j`` coincides with another tube's cut."""
+    B, N = D.shape
+    for b in range(B):
+        for j in range(N):
+            d = D[b, j]
+            k = ((d <= tol and L[j] - d > tol)
+                 or (abs(Ls[j] - d) <= tol and curved[j] and L[j] > Ls[j])
+                 or abs(L[j] - d) <= tol)
+            # a moving cut of tube j (its end; its transition beyond the orifice) meeting one
+            # of another tube's (forces._coinciding_cuts)
+            for c in range(2):
+                if k:
+                    break
+                ell_j = max(L[j] - d, 0.0)
+                cut = ell_j if c == 0 else Ls[j] - d
+                if c == 0:
+                    ok = ell_j > tol
+                else:
+                    ok = curved[j] and cut > tol and cut < ell_j - tol
+                if not ok:
+                    continue
+                for o in range(N):
+                    if o == j or k:
+                        continue
+                    ell_o = max(L[o] - D[b, o], 0.0)
+                    for c2 in range(2):
+                        other = ell_o if c2 == 0 else Ls[o] - D[b, o]
+                        if c2 == 0:
+                            ok2 = ell_o > tol
+                        else:
+                            ok2 = curved[o] and other > tol and other < ell_o - tol
+                        if ok2 and abs(cut - other) <= tol:
+                            k = True
+            kink[b, j] = k
+
+
 _INPUT_ERRORS = {
     1: "insertion must be finite",
     2: "rotation must be finite",
@@ -533,7 +574,6 @@ class Tracker:
         self._disc = self.options.discretization(self.order)
         dt = torch.float64
         tubes = eq.context.tubes
-        self._tubes_t = tubes
         self._kink_at = (None, None, None)     # (D, side mask, side insertions) of the last D
         N = scene.n_tubes
         self.N = N
@@ -574,6 +614,8 @@ class Tracker:
         self._no_sel, self._no_Dn = np.zeros(0, dtype=np.int64), np.zeros((0, N))
         self._no_tau, self._no_vals = np.empty((B, N)), np.empty(0)
         self._force_plan = (None, None)
+        self._curved = np.ascontiguousarray(
+            (np.abs(tb.coef).sum((-1, -2)) > 0).reshape(-1))
         self._hmax = VANISHING * self._length
         self.state = TrackState(q=self._q.copy(), tip=eq.tip_position.detach().numpy().copy(),
                                 R=eq.tip_rotation.detach().numpy().copy(),
@@ -620,6 +662,14 @@ class Tracker:
                              f"(the tracker's batch), got {a.shape}")
         return a
 
+    def _kinks(self, D: np.ndarray) -> np.ndarray:
+        """``(B, N)`` bool: :func:`torchpvs.forces.kink_mask` at ``D`` (compiled)."""
+        kink = np.empty(D.shape, dtype=np.bool_)
+        tb = self._tubes
+        _kink_mask(tb.length.reshape(-1), tb.straight.reshape(-1), self._curved, D, KINK_TOL,
+                   kink)
+        return kink
+
     def _kink_side(self, D: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(side (B,) int8, D_side (B, N))``: the rows whose insertions sit at a kink of
         ``U*(D_j)`` and the insertions of the one side :mod:`torchpvs.jacobians` takes there
@@ -628,8 +678,7 @@ class Tracker:
         last_D, side, D_side = self._kink_at
         if last_D is not None and np.array_equal(last_D, D):
             return side.copy(), D_side
-        Dt = torch.from_numpy(D)
-        kink = kink_mask(self._tubes_t, Dt).numpy()
+        kink = self._kinks(D)
         L = np.broadcast_to(self._tubes.length, D.shape)
         sign = np.where(np.abs(L - D) <= KINK_DELTA / 2, -1.0, 1.0)
         D_side = np.maximum.accumulate(D + KINK_DELTA * sign * kink, axis=-1)
@@ -645,7 +694,7 @@ class Tracker:
         last_D, plan = self._force_plan
         if last_D is not None and np.array_equal(last_D, D):
             return plan
-        kink = kink_mask(self._tubes_t, torch.from_numpy(D)).numpy()
+        kink = self._kinks(D)
         prev = np.concatenate([np.zeros_like(D[:, :1]), D[:, :-1]], -1)
         blocked = D - KINK_DELTA < prev
         rows_b, rows_j = np.nonzero(kink)
