@@ -6,20 +6,22 @@ Magnus check), computes the actuation forces and builds an :class:`~torchpvs.Equ
 around its tensors; at a batch of one that glue, not arithmetic, is nearly all of its time
 (docs/performance.md). A control loop steps the same robot by small actuator moves, where the
 discretization chosen once stays valid and the previous solution is the warm start. Then the
-whole step is two compiled calls: the layout and energy maps at the new actuation
-(:mod:`torchpvs.compiled_layout`), then, per element, the rotation predictor, the damped Newton
-solve of :mod:`torchpvs.compiled` and the tip pose.
+whole step is ONE compiled call per batch: the input checks, the layout and energy maps at the
+new actuation (:func:`torchpvs.compiled_layout.layout_maps_arrays`), then, per element, the
+rotation predictor, the damped Newton solve of :mod:`torchpvs.compiled`, the tip pose and the
+stability verdict; on request the actuation forces (with their one-sided values at kinks) and
+the control step (tip Jacobian, actuator stiffness) in the same call.
 
 :class:`Tracker` is that loop. It is built from a scene by one default :func:`torchpvs.solve`
 (which picks the basis order and Magnus steps for the requested accuracy at the scene's
 actuation, or takes them from ``options``) and keeps, per element, the last coordinates and
 Hessian. Each :meth:`Tracker.step` computes what ``torchpvs.solve(scene, insertion=...,
-rotation=..., initial=previous, options=SolverOptions(order=k, n_magnus=m,
-compute_forces=False))`` computes for the pose: the same layout, predictor, Newton iteration
-and tip pose (``tests/test_tracker.py`` compares them step by step). It does not re-check the
-discretization, compute forces or gradients, or take a tip load; for those, and whenever a
-step does not converge, :func:`torchpvs.solve` is the tool (:meth:`Tracker.equilibrium` runs
-it at the tracker's state).
+rotation=..., initial=previous, options=SolverOptions(order=k, n_magnus=m))`` computes for the
+pose, the forces and ``Equilibrium.jacobians()``: the same layout, predictor, Newton iteration,
+tip pose and closed forms (``tests/test_tracker.py`` compares them step by step). It does not
+re-check the discretization, carry gradients or take a tip load; for those, and whenever a step
+does not converge, :func:`torchpvs.solve` is the tool (:meth:`Tracker.equilibrium` runs it at
+the tracker's state).
 
 Where it applies: CPU, float64, numba importable, an unloaded scene.
 """
