@@ -16,6 +16,10 @@ Episodes auto-reset as in training (reset cost included). Usage::
 One torch thread is the default because it is what training uses (2 threads on a 2-core
 machine contend with the learner).
 
+``--torch-solver`` adds, beside each batched env, the same env on ``torchpvs.solve``
+(``solver="torch"``: every equilibrium through the full solver, as before the compiled env
+solver) and the ratio, measured side by side on the same actions.
+
 ``--breakdown`` instead splits one batched force-env step (``CTRReachVecEnv``, the largest of
 ``--batches``) into its stages, from a ``cProfile`` of ``--steps`` steps: the solves, the
 actuator stiffness (for the linearly implicit step and the substep count), the stability
@@ -74,9 +78,9 @@ def bench_dummy(robot: str, control: str, B: int, n_steps: int):
     return _time_steps(venv.step, n_steps, B, (B, venv.action_space.shape[0]), rng)
 
 
-def bench_batched(robot: str, control: str, B: int, n_steps: int):
+def bench_batched(robot: str, control: str, B: int, n_steps: int, solver: str = "auto"):
     import envs
-    venv = envs.CTRReachVecEnv(B, robot=robot, control=control)
+    venv = envs.CTRReachVecEnv(B, robot=robot, control=control, solver=solver)
     venv.seed(0)
     venv.reset()
     rng = np.random.default_rng(0)
@@ -89,32 +93,47 @@ def bench_batched(robot: str, control: str, B: int, n_steps: int):
     return rate, ms, float(np.mean(substeps))
 
 
-# (label, module, qualified name) of the stages --breakdown reports, outermost first
-_STAGES = (
-    ("step (all)", "envs.dynamics", "RobotBatch.step_force"),
-    ("  solves", "torchpvs.solver", "solve_tensors"),
-    ("    layout + maps, compiled", "torchpvs.compiled_layout", "layout_and_maps"),
-    ("    layout (eager build_layout)", "torchpvs.sections", "build_layout"),
-    ("    maps (eager build_maps)", "torchpvs.mechanics", "build_maps"),
-    ("    compiled Newton", "torchpvs.compiled", "solve"),
-    ("    compiled pose", "torchpvs.compiled", "pose"),
-    ("    actuation forces", "torchpvs.forces", "equilibrium_forces"),
-    ("    order estimate", "torchpvs.order_control", "order_estimate"),
-    ("  actuator stiffness", "torchpvs.jacobians", "actuator_stiffness"),
-    ("    its factorization", "torchpvs.implicit", "adjoint_factor"),
-    ("  stability margin", "torchpvs.equilibrium", "Equilibrium.min_stiffness_eigenvalue"),
-)
+# (label, module, qualified name) of the stages --breakdown reports, outermost first, for each
+# env solver (envs.plant.SOLVERS): torchpvs' solve, and the compiled warm solve
+_STAGES = {
+    "torch": (
+        ("step (all)", "envs.dynamics", "RobotBatch.step_force"),
+        ("  solves", "envs.plant", "Plants.warm"),
+        ("    layout + maps, compiled", "torchpvs.compiled_layout", "layout_and_maps"),
+        ("    layout (eager build_layout)", "torchpvs.sections", "build_layout"),
+        ("    maps (eager build_maps)", "torchpvs.mechanics", "build_maps"),
+        ("    compiled Newton", "torchpvs.compiled", "solve"),
+        ("    compiled pose", "torchpvs.compiled", "pose"),
+        ("    actuation forces", "torchpvs.forces", "equilibrium_forces"),
+        ("    order estimate", "torchpvs.order_control", "order_estimate"),
+        ("  actuator stiffness", "torchpvs.jacobians", "actuator_stiffness"),
+        ("    its factorization", "torchpvs.implicit", "adjoint_factor"),
+        ("  stability margin", "torchpvs.equilibrium", "Equilibrium.min_stiffness_eigenvalue"),
+        ("  substep count", "envs.dynamics", "RobotBatch.n_substeps"),
+        ("  contact", "envs.dynamics", "RobotBatch._contact"),
+    ),
+    "auto": (
+        ("step (all)", "envs.dynamics", "RobotBatch.step_force"),
+        ("  solves", "envs.plant", "Plants.warm"),
+        ("    one compiled call each", "torchpvs.tracker", "Tracker._run"),
+        ("  actuator stiffness (its rows)", "envs.dynamics", "RobotBatch._stiffness_of"),
+        ("  substep count", "envs.dynamics", "RobotBatch.n_substeps"),
+        ("  contact", "envs.dynamics", "RobotBatch._contact"),
+    ),
+}
 
 
-def breakdown(robot: str, B: int, n_steps: int) -> None:
-    """Print the share of a batched force-env step spent in each of :data:`_STAGES`."""
+def breakdown(robot: str, B: int, n_steps: int, solver: str = "auto") -> None:
+    """Print the share of a batched force-env step spent in each of :data:`_STAGES` of the
+    env solver ``solver`` (the compiled one computes the forces, the margin and the stiffness
+    inside its one call per solve)."""
     import cProfile
     import importlib
     import inspect
     import pstats
 
     import envs
-    venv = envs.CTRReachVecEnv(B, robot=robot)
+    venv = envs.CTRReachVecEnv(B, robot=robot, solver=solver)
     venv.seed(0)
     venv.reset()
     rng = np.random.default_rng(0)
@@ -128,7 +147,7 @@ def breakdown(robot: str, B: int, n_steps: int) -> None:
     prof.disable()
     stats = pstats.Stats(prof).stats       # (file, line, name) -> (cc, nc, tt, ct, callers)
     rows = []
-    for label, module, qual in _STAGES:
+    for label, module, qual in _STAGES[solver]:
         obj = importlib.import_module(module)
         for part in qual.split("."):
             obj = getattr(obj, part)
@@ -138,8 +157,8 @@ def breakdown(robot: str, B: int, n_steps: int) -> None:
         calls, cum = (stats[key][1], stats[key][3]) if key in stats else (0, 0.0)
         rows.append((label, calls, cum))
     total = rows[0][2]
-    print(f"force env, B = {B}, {n_steps} profiled steps: {1e3 * total / n_steps:.1f} ms per "
-          f"step under the profiler")
+    print(f"force env, B = {B}, solver {solver!r}, {n_steps} profiled steps: "
+          f"{1e3 * total / n_steps:.1f} ms per step under the profiler")
     print(f"{'stage':<30}{'calls/step':>11}{'ms/step':>9}{'share':>8}")
     for label, calls, cum in rows:
         print(f"{label:<30}{calls / n_steps:>11.2f}{1e3 * cum / n_steps:>9.2f}"
@@ -156,10 +175,15 @@ def main() -> None:
     ap.add_argument("--threads", type=int, default=1)
     ap.add_argument("--breakdown", action="store_true",
                     help="split one force-env step into its stages instead (see above)")
+    ap.add_argument("--solver", default="auto", choices=("auto", "torch"),
+                    help="--breakdown: the env solver to profile (envs.plant.SOLVERS)")
+    ap.add_argument("--torch-solver", action="store_true",
+                    help="also time each batched env on torchpvs' solve (solver='torch'), "
+                         "side by side, and print the compiled env solver's ratio")
     args = ap.parse_args()
     torch.set_num_threads(args.threads)
     if args.breakdown:
-        breakdown(args.robot, args.batches[-1], args.steps)
+        breakdown(args.robot, args.batches[-1], args.steps, args.solver)
         return
     print(f"robot {args.robot}, torch {torch.__version__}, {args.threads} thread(s), "
           f"{args.steps} timed steps per row")
@@ -173,9 +197,16 @@ def main() -> None:
             print(f"{'DummyVecEnv (' + control + ')':<34}{args.dummy:>5}{rated:>15.1f}"
                   f"{msd:>14.2f}{'':>10}")
         for B in args.batches:
+            if args.torch_solver:
+                rate_t, ms_t, sub_t = bench_batched(args.robot, control, B, args.steps, "torch")
+                print(f"{'CTRReachVecEnv (' + control + ', torch solver)':<34}{B:>5}"
+                      f"{rate_t:>15.1f}{ms_t:>14.2f}{sub_t:>10.2f}")
             rate, ms, sub = bench_batched(args.robot, control, B, args.steps)
             print(f"{'CTRReachVecEnv (' + control + ')':<34}{B:>5}{rate:>15.1f}{ms:>14.2f}"
                   f"{sub:>10.2f}")
+            if args.torch_solver:
+                print(f"{'':<34}{'':>5}  compiled env solver / torch solver at B={B}: "
+                      f"{rate / rate_t:.2f}x")
             if B == args.dummy:
                 print(f"{'':<34}{'':>5}  batched / DummyVecEnv at B={B}: {rate / rated:.1f}x")
         print(f"{'':<34}{'':>5}  batched at B={args.batches[-1]} / single env: "

@@ -58,11 +58,8 @@ from dataclasses import dataclass
 from typing import NamedTuple
 
 import numpy as np
-import torch
 
-from torchpvs.jacobians import actuator_stiffness
-
-from .plant import Plants, PlantVariation
+from .plant import Plants, PlantVariation, Solved, solved_from
 from .robots import Robot
 
 __all__ = ["CarriageModel", "RobotBatch", "StepFlags"]
@@ -196,22 +193,9 @@ class StepFlags(NamedTuple):
     contact_force: np.ndarray
 
 
-class _Solved(NamedTuple):
-    """What a substep reads of a batched solve, as numpy arrays (float64, ``(k, ...)``): the
-    one place where the solver's tensors become the batch's state."""
-
-    g: np.ndarray          # (k, 2N) [N, N·m] dU*/dx
-    tip: np.ndarray        # (k, 3) [m]
-    margin: np.ndarray     # (k,)
-    twist: np.ndarray      # (k, N-1) [rad] relative rotations at the outer tube's tip
-    energy: np.ndarray     # (k,) [J]
-    q: np.ndarray          # (k, nq) solver coordinates (the next warm start)
-    ok: np.ndarray         # (k,) converged with finite forces and tip
-
-
 class RobotBatch:
     """State and stepping of ``B`` robots: numpy state throughout, one batched torch solve
-    per substep (actuations in, :class:`_Solved` arrays out).
+    per substep (actuations in, :class:`envs.plant.Solved` arrays out).
 
     State arrays (float64): ``x (B, 2N)``, ``v (B, 2N)``, ``g (B, 2N)`` [N, N·m],
     ``tip (B, 3)`` [m] in the base frame, ``margin (B,)`` (smallest scaled stiffness
@@ -266,19 +250,11 @@ class RobotBatch:
         self.contact_fallbacks = 0                   # contact QPs that failed (clipped instead)
 
     # ------------------------------------------------------------------------------------------
-    def _solve(self, x: np.ndarray, q0: np.ndarray | None, idx: np.ndarray):
-        """Equilibria of robots ``idx`` at feasible, finite ``x`` (their own plants)."""
+    def _warm(self, x: np.ndarray, idx: np.ndarray, stiffness: bool) -> Solved:
+        """Equilibria of robots ``idx`` at feasible, finite ``x`` (their own plants), warm
+        from their last ones (:meth:`envs.plant.Plants.warm`)."""
         self.solves += 1
-        return self.plants.solve(x, idx, initial=None if q0 is None else torch.from_numpy(q0))
-
-    @staticmethod
-    def _unpack(eq) -> _Solved:
-        g = torch.cat([eq.actuation_forces, eq.actuation_torques], -1).numpy()
-        tip = eq.tip_position.numpy()
-        ok = eq.converged.numpy() & np.isfinite(g).all(-1) & np.isfinite(tip).all(-1)
-        return _Solved(g=g, tip=tip, margin=eq.min_stiffness_eigenvalue.numpy(),
-                       twist=eq.relative_rotation_at_outer_tip.numpy(),
-                       energy=eq.energy.detach().numpy(), q=eq.q.detach().numpy(), ok=ok)
+        return self.plants.warm(x, idx, self.q[idx], stiffness=stiffness)
 
     def set_state(self, idx: np.ndarray, x: np.ndarray, eq=None, rows=None) -> np.ndarray:
         """Place robots ``idx`` at ``x (len(idx), 2N)`` at rest (insertions projected onto the
@@ -295,8 +271,9 @@ class RobotBatch:
         D, lo, hi = self.robot.project(x[:, :self.N])
         x = np.concatenate([D, x[:, self.N:]], -1)
         if eq is None:
-            eq, rows = self._solve(x, None, idx), np.arange(len(idx))
-        s = self._unpack(eq)
+            self.solves += 1
+            eq, rows = self.plants.solve(x, idx), np.arange(len(idx))
+        s = solved_from(eq)
         if self.q is None or self.q.shape[-1] != s.q.shape[-1]:
             self.q = np.zeros((self.B, s.q.shape[-1]), dtype=s.q.dtype)
         self.x[idx], self.v[idx] = x, 0.0
@@ -305,7 +282,7 @@ class RobotBatch:
         self._parked[idx] = False
         self.at_lower[idx], self.at_upper[idx] = lo, hi
         self.q[idx] = s.q[rows]
-        self.K[idx], self.K_unclipped[idx] = self._stiffness_of(eq, rows)
+        self.K[idx], self.K_unclipped[idx] = self._stiffness_of(s, rows)
         return s.ok[rows]
 
     def compensation(self, direction: np.ndarray) -> np.ndarray:
@@ -327,11 +304,12 @@ class RobotBatch:
         g[far] = self._park_g[far]
         return g
 
-    def _stiffness_of(self, eq, rows) -> tuple[np.ndarray, np.ndarray]:
-        """``(K_clipped, K)`` of ``eq``'s ``rows``: ``K`` the symmetrized actuator stiffness
-        ``dtau/dx``, ``K_clipped`` its positive part (the implicit step's; non-finite entries
-        zero)."""
-        K = actuator_stiffness(eq, torch.as_tensor(rows)).numpy()
+    @staticmethod
+    def _stiffness_of(s: Solved, rows) -> tuple[np.ndarray, np.ndarray]:
+        """``(K_clipped, K)`` of the solve ``s``'s ``rows``: ``K`` the symmetrized actuator
+        stiffness ``dtau/dx``, ``K_clipped`` its positive part (the implicit step's; non-finite
+        entries zero)."""
+        K = s.stiffness(np.asarray(rows))
         K = 0.5 * (K + np.swapaxes(K, -1, -2))
         w, V = np.linalg.eigh(K)
         Kc = (V * np.clip(w, 0.0, None)[..., None, :]) @ np.swapaxes(V, -1, -2)
@@ -413,13 +391,13 @@ class RobotBatch:
             active = n > k
             tip0, x0, twist0 = self.tip.copy(), self.x.copy(), self.twist.copy()
             skip = failure | ~active
-            committed = self._advance(propose, skip, accept)
+            committed = self._advance(propose, skip, accept, stiffness)
             failure |= skip & active
             if committed is not None:
-                eq, idx, rows = committed
+                s, idx, rows = committed
                 last = n[idx] == k + 1  # robots finishing their period in this substep
                 if len(idx[last]):
-                    K_eq.append((eq, idx[last], rows[last]))
+                    K_eq.append((s, idx[last], rows[last]))
             d = np.linalg.norm(self.tip - tip0, axis=-1)
             dx = self.x - x0
             jump = np.maximum(jump, d)
@@ -431,8 +409,8 @@ class RobotBatch:
             snapped |= active & ((d > self.model.snap_jump + explained) | release
                                  | (self.margin <= 0.0))
         if stiffness:
-            for eq, idx, rows in K_eq:
-                self.K[idx], self.K_unclipped[idx] = self._stiffness_of(eq, rows)
+            for s, idx, rows in K_eq:
+                self.K[idx], self.K_unclipped[idx] = self._stiffness_of(s, rows)
         stop, pair = self.contact_forces(self._impulse / self.model.control_period)
         return StepFlags(solver_failure=failure, snapped=snapped, tip_jump=jump, substeps=n,
                          stop_force=stop, contact_force=pair)
@@ -488,7 +466,7 @@ class RobotBatch:
         x_new, lam = self._contact(x + dx, A)
         return x_new, (x_new - x) / h, lam / per_force * h     # contact impulse [N·s] per row
 
-    def _advance(self, propose, skip, accept=None):
+    def _advance(self, propose, skip, accept=None, stiffness: bool = False):
         """One substep for the robots not in ``skip``: propose, project, solve; robots whose
         solve fails, or whose step ``accept(idx, x_new, energy_new)`` rejects, retry from their
         last valid state with the step halved (up to ``max_retries`` times). Robots whose solve
@@ -520,8 +498,7 @@ class RobotBatch:
                 first[todo] = x
                 if len(todo) == 0:
                     break
-            eq = self._solve(x, self.q[todo], todo)
-            s = self._unpack(eq)
+            s = self._warm(x, todo, stiffness and attempt == 0)
             converged = s.ok
             ok = converged.copy()
             if attempt == 0:
@@ -538,7 +515,7 @@ class RobotBatch:
             self._parked[idx] = False
             self._impulse[idx] += impulse[good]
             if attempt == 0:
-                committed = (eq, idx, good)
+                committed = (s, idx, good)
             failed = ~converged[~ok]
             todo = todo[~ok]
             frac /= 2

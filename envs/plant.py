@@ -10,24 +10,66 @@ direction, and Gaussian tip-measurement noise of ``tip_noise`` [m] per axis. The
 the measured tip; controllers are given the nominal robot (``env.robot``).
 
 :class:`Plants` holds the ``B`` robots' draws and solves their equilibria in one batched call
-with per-robot tube properties and tip loads (``torchpvs.solver.solve_tensors``).
+with per-robot tube properties and tip loads (``torchpvs.solver.solve_tensors``). The warm
+solves of time stepping (:meth:`Plants.warm`) run on the compiled control-loop solver
+(:meth:`torchpvs.Tracker.solve_from`: the same Newton iteration and closed forms as the solve
+at the environments' fixed discretization, in one compiled call with the forces, the stability
+margin and the actuator stiffness) wherever it applies: the nominal robot (no plant variation),
+numba importable, ``solver="auto"`` or ``"compiled"``; elsewhere on ``torchpvs`` 's solve.
 """
 
 from __future__ import annotations
 
 import math
+from collections.abc import Callable
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import numpy as np
 import torch
 
+from torchpvs import compiled
+from torchpvs.jacobians import actuator_stiffness
 from torchpvs.plan import tube_tensors
 from torchpvs.sections import TubeTensors
 from torchpvs.solver import solve_tensors
+from torchpvs.tracker import Tracker
 
 from .robots import ENV_SOLVER_OPTIONS, Robot, RobotSolver
 
-__all__ = ["PlantVariation", "Plants", "solve_robots"]
+__all__ = ["PlantVariation", "Plants", "Solved", "solve_robots", "SOLVERS"]
+
+#: The env solvers (``Plants(solver=...)``): ``"auto"`` the compiled warm solves where they
+#: apply, else torch's; ``"compiled"`` the same but an error where they cannot apply;
+#: ``"torch"`` always ``torchpvs``' solve (the reference the compiled path is tested against).
+SOLVERS = ("auto", "compiled", "torch")
+
+
+class Solved(NamedTuple):
+    """What a substep reads of a batched solve of ``k`` robots, as numpy arrays (float64,
+    ``(k, ...)``): the one place where a solver's results become the batch's state."""
+
+    g: np.ndarray          # (k, 2N) [N, N·m] dU*/dx (the retraction side at a kink)
+    tip: np.ndarray        # (k, 3) [m]
+    margin: np.ndarray     # (k,) Equilibrium.min_stiffness_eigenvalue
+    twist: np.ndarray      # (k, N-1) [rad] relative rotations at the outer tube's tip
+    energy: np.ndarray     # (k,) [J]
+    q: np.ndarray          # (k, nq) solver coordinates (the next warm start)
+    ok: np.ndarray         # (k,) converged with finite forces and tip
+    #: ``stiffness(rows)``: the actuator stiffness ``dtau/dx`` ``(len(rows), 2N, 2N)`` of
+    #: those rows (torchpvs.jacobians.actuator_stiffness, one-sided at kinks)
+    stiffness: Callable[[np.ndarray], np.ndarray]
+
+
+def solved_from(eq) -> Solved:
+    """:class:`Solved` of an :class:`~torchpvs.Equilibrium` (its stiffness on request)."""
+    g = torch.cat([eq.actuation_forces, eq.actuation_torques], -1).numpy()
+    tip = eq.tip_position.numpy()
+    ok = eq.converged.numpy() & np.isfinite(g).all(-1) & np.isfinite(tip).all(-1)
+    return Solved(g=g, tip=tip, margin=eq.min_stiffness_eigenvalue.numpy(),
+                  twist=eq.relative_rotation_at_outer_tip.numpy(),
+                  energy=eq.energy.detach().numpy(), q=eq.q.detach().numpy(), ok=ok,
+                  stiffness=lambda rows: actuator_stiffness(eq, torch.as_tensor(rows)).numpy())
 
 
 def _nonneg(value, name: str) -> float:
@@ -71,7 +113,10 @@ class Plants:
     """The plants of ``B`` robots: ``factors (B, 3, N)`` (precurvature, E, G per tube) and
     ``tip_force (B, 3)`` [N] in the base frame."""
 
-    def __init__(self, robot: Robot, variation: PlantVariation, batch_size: int):
+    def __init__(self, robot: Robot, variation: PlantVariation, batch_size: int,
+                 solver: str = "auto"):
+        if solver not in SOLVERS:
+            raise ValueError(f"solver must be one of {SOLVERS}, got {solver!r}")
         self.robot, self.variation = robot, variation
         N = robot.n_tubes
         self.factors = np.ones((batch_size, 3, N))
@@ -79,6 +124,14 @@ class Plants:
         # the nominal robot's solves and tube tensors, built once (the plan of its scene)
         self._nominal = RobotSolver(robot)
         self._base = self._nominal.plan.tubes
+        fits = variation.nominal and robot.scene.load.is_zero and compiled.available()
+        if solver == "compiled" and not fits:
+            raise ValueError("solver='compiled' needs the nominal robot (no plant variation), "
+                             "an unloaded scene and numba; use solver='auto' or 'torch'")
+        #: the compiled warm solver (torchpvs.Tracker at the envs' discretization), or None
+        self.tracker = (Tracker(robot.scene, options=ENV_SOLVER_OPTIONS)
+                        if fits and solver != "torch" else None)
+        self.solver = solver
 
     def draw(self, idx: np.ndarray, rngs) -> None:
         """New plants for robots ``idx``, each from its own generator ``rngs[i]``."""
@@ -103,6 +156,31 @@ class Plants:
             return solve_robots(self.robot, torch.as_tensor(np.asarray(x, np.float64)),
                                 self.factors[rows], self.tip_force[rows], initial,
                                 base=self._base)
+
+
+    def warm(self, x: np.ndarray, rows: np.ndarray, q0: np.ndarray,
+             stiffness: bool = False) -> Solved:
+        """:class:`Solved` of robots ``rows`` at feasible, finite ``x (len(rows), 2N)``, warm
+        from their coordinates ``q0 (len(rows), nq)``: one compiled call (with the actuator
+        stiffness of every row when ``stiffness``) where :attr:`tracker` applies, else
+        :meth:`solve`."""
+        if self.tracker is None:
+            return solved_from(self.solve(x, rows, initial=torch.from_numpy(q0)))
+        N = self.robot.n_tubes
+        st = self.tracker.solve_from(q0, x[:, :N], x[:, N:], stiffness=stiffness,
+                                     forces=True, margin=True)
+        g = np.concatenate([st.actuation_forces, st.actuation_torques], -1)
+        ok = st.converged & np.isfinite(g).all(-1) & np.isfinite(st.tip).all(-1)
+        K = st.actuator_stiffness
+
+        def stiffness_of(r: np.ndarray) -> np.ndarray:
+            if K is None:
+                raise ValueError("Plants.warm: the stiffness was not computed (stiffness=True)")
+            return K[r]
+
+        return Solved(g=g, tip=st.tip, margin=st.min_stiffness_eigenvalue,
+                      twist=st.relative_rotation_at_outer_tip, energy=st.energy, q=st.q, ok=ok,
+                      stiffness=stiffness_of)
 
 
 def solve_robots(robot: Robot, x: torch.Tensor, factors: np.ndarray, tip_force=None,

@@ -56,7 +56,7 @@ from gymnasium.error import ResetNeeded
 from gymnasium.utils import seeding
 
 from .dynamics import CarriageModel, RobotBatch
-from .plant import Plants, PlantVariation
+from .plant import SOLVERS, Plants, PlantVariation
 from .robots import Robot
 
 __all__ = ["ReachConfig", "ReachBatch", "RobotState", "RewardTerms", "OBS_BOUND",
@@ -176,6 +176,14 @@ class ReachConfig:
             shipped agent's successful episodes END with ``k_rel < -0.01 stiffness_scale``
             (the goal lies where the robot must be held by feedback), while its snaps were
             mostly preceded by ``k_rel < -10 stiffness_scale`` (``docs/training.md``).
+        solver: how the robots' equilibria are computed along an episode
+            (:data:`envs.plant.SOLVERS`): ``"auto"`` (default) steps on the compiled
+            control-loop solver (:meth:`torchpvs.Tracker.solve_from`) where it applies (the
+            nominal robot: no plant variation), else on ``torchpvs.solve``; ``"torch"``
+            always on ``torchpvs.solve``; ``"compiled"`` like ``"auto"`` but an error where
+            the compiled path does not apply. Both compute the same equilibria (the same
+            Newton iterations; tips and coordinates equal, forces and stiffness to rounding:
+            ``tests/envs/test_solvers.py``); the compiled one is faster.
     """
 
     control: str = "force"
@@ -196,6 +204,7 @@ class ReachConfig:
     observe_stiffness: bool = False
     stiffness_penalty: float = 0.0
     stiffness_hazard: float = STIFFNESS_HAZARD
+    solver: str = "auto"
 
     @property
     def plant(self) -> PlantVariation:
@@ -254,6 +263,8 @@ class ReachConfig:
             raise ValueError(f"stiffness_hazard must be a finite number < 0 (a threshold on "
                              f"k_rel / stiffness_scale; >= 0 would flag stable states), got "
                              f"{self.stiffness_hazard!r}")
+        if self.solver not in SOLVERS:
+            raise ValueError(f"solver must be one of {SOLVERS}, got {self.solver!r}")
         if not (_real(self.error_scale) and self.error_scale > 0):
             raise ValueError(f"error_scale must be a finite length > 0 [m], got "
                              f"{self.error_scale!r}")
@@ -465,7 +476,7 @@ class ReachBatch:
             raise ValueError(f"batch_size must be an integer >= 1, got {batch_size!r}")
         self.robot, self.config, self.carriage = robot, config, carriage
         self.B, self.N = batch_size, robot.n_tubes
-        self.plants = Plants(robot, config.plant, batch_size)
+        self.plants = Plants(robot, config.plant, batch_size, solver=config.solver)
         self.robots = RobotBatch(robot, carriage, batch_size, plants=self.plants)
         self.measured_tip = np.zeros((batch_size, 3))   # tip + measurement noise
         self.tolerance = config.tolerance

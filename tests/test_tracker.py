@@ -342,3 +342,68 @@ def test_compiled_kink_mask_is_the_solvers():
         expected = kink_mask(tp.solve(scene).context.tubes, torch.tensor(D)).numpy()
         np.testing.assert_array_equal(got, expected)
         assert expected.any() and not expected.all()
+
+
+def test_solve_from_is_the_plain_warm_solve_with_its_outputs():
+    """``Tracker.solve_from`` (any number of rows, warm from given coordinates, no predictor)
+    against ``torchpvs.solve(initial=q)`` at the same fixed discretization: identical
+    iterations and verdicts, tips and coordinates within 1e-12; energy, relative rotation
+    and stability margin as the Equilibrium defines them (to round-off); forces equal; the
+    actuator stiffness equals ``torchpvs.jacobians.actuator_stiffness``; the tracker's own
+    state untouched."""
+    from torchpvs.jacobians import actuator_stiffness
+    scene = tp.load_scene("renda2021_fig3")
+    opts = tp.SolverOptions(order=2, n_magnus=8)
+    rng = np.random.default_rng(5)
+    k = 7
+    D0 = np.array(scene.actuation.insertion) + rng.uniform(-0.01, 0.01, (k, 2))
+    D0 = np.maximum.accumulate(np.clip(D0, 0, None), -1)
+    A0 = rng.uniform(-math.pi, math.pi, (k, 2))
+    eq0 = tp.solve(scene, insertion=torch.from_numpy(D0), rotation=torch.from_numpy(A0),
+                   options=opts)
+    D1 = D0 + rng.normal(0, 5e-4, (k, 2))
+    D1 = np.maximum.accumulate(np.clip(D1, 0, None), -1)
+    A1 = A0 + rng.normal(0, 0.03, (k, 2))
+    eq = tp.solve(scene, insertion=torch.from_numpy(D1), rotation=torch.from_numpy(A1),
+                  initial=eq0.q, options=opts)
+    tr = tp.Tracker(scene, options=opts)
+    before = tr.snapshot()
+    s = tr.solve_from(eq0.q, D1, A1, stiffness=True, forces=True, margin=True)
+    assert tr.snapshot() == before
+    assert bool(eq.converged.all())
+    np.testing.assert_array_equal(s.iterations, eq.iterations.numpy())
+    np.testing.assert_array_equal(s.stable, eq.stable.numpy())
+    np.testing.assert_allclose(s.tip, eq.tip_position.numpy(), atol=1e-12, rtol=0)
+    np.testing.assert_allclose(s.q, eq.q.numpy(), atol=1e-12, rtol=0)
+    np.testing.assert_allclose(s.energy, eq.energy.numpy(), rtol=1e-12, atol=0)
+    np.testing.assert_allclose(s.relative_rotation_at_outer_tip,
+                               eq.relative_rotation_at_outer_tip.numpy(), atol=1e-12, rtol=0)
+    np.testing.assert_allclose(s.min_stiffness_eigenvalue,
+                               eq.min_stiffness_eigenvalue.numpy(), atol=1e-12, rtol=0)
+    np.testing.assert_allclose(s.actuation_forces, eq.actuation_forces.numpy(), atol=1e-9,
+                               rtol=0)
+    np.testing.assert_allclose(s.actuation_torques, eq.actuation_torques.numpy(), atol=1e-9,
+                               rtol=0)
+    K = actuator_stiffness(eq).numpy()
+    K = 0.5 * (K + np.swapaxes(K, -1, -2))
+    np.testing.assert_allclose(s.actuator_stiffness, K, atol=1e-9 * np.abs(K).max(), rtol=0)
+    assert s.tip_jacobian is None
+    # without the margin or the stiffness: not computed, reported as None
+    s2 = tr.solve_from(eq0.q, D1, A1)
+    assert s2.min_stiffness_eigenvalue is None and s2.actuator_stiffness is None
+    np.testing.assert_array_equal(s2.tip, s.tip)
+
+
+def test_solve_from_checks_its_inputs():
+    tr = tp.Tracker("renda2021_fig3", options=tp.SolverOptions(order=2, n_magnus=8))
+    q = tr.state.q
+    D = np.array([tr.scene.actuation.insertion])
+    A = np.zeros((1, 2))
+    with pytest.raises(ValueError, match="initial must have shape"):
+        tr.solve_from(q[:, :-1], D, A)
+    with pytest.raises(ValueError, match="rotation must have shape"):
+        tr.solve_from(q, D, np.zeros((2, 2)))
+    with pytest.raises(ValueError, match="insertion must be finite"):
+        tr.solve_from(q, D * np.nan, A)
+    with pytest.raises(ValueError, match="D_j must be >= D_{j-1}"):
+        tr.solve_from(q, D[:, ::-1] + [[0.0, -0.01]], A)

@@ -73,6 +73,10 @@ class TrackState:
     residual: ``(B,)`` Newton's scaled residual at ``q``. iterations: ``(B,)`` int.
     stable: ``(B,)`` bool, the Hessian at ``q`` is positive definite (a minimum of the energy)
     where the solve converged.
+    energy: ``(B,)`` [J] the stored elastic energy; relative_rotation_at_outer_tip: ``(B, N-1)``
+    [rad] ``psi_j - psi_1`` at the outer tube's end, wrapped to ``(-pi, pi]``;
+    min_stiffness_eigenvalue: ``(B,)`` the stability margin (``None`` unless asked for): all
+    three as :class:`~torchpvs.Equilibrium` defines them.
     tip_jacobian: ``(B, 6, 2N)`` ``d(tip)/dx``, rows the tip position [m] and spatial rotation
     [rad], columns ``x = (D_1..D_N [m], alpha_1..alpha_N [rad])``; actuator_stiffness:
     ``(B, 2N, 2N)`` ``dtau/dx`` [N/m, N, N·m] (:mod:`torchpvs.jacobians`' closed forms, the
@@ -92,6 +96,9 @@ class TrackState:
     residual: np.ndarray
     iterations: np.ndarray
     stable: np.ndarray
+    energy: np.ndarray | None = None
+    relative_rotation_at_outer_tip: np.ndarray | None = None
+    min_stiffness_eigenvalue: np.ndarray | None = None
     tip_jacobian: np.ndarray | None = None
     actuator_stiffness: np.ndarray | None = None
     actuation_forces: np.ndarray | None = None
@@ -124,17 +131,16 @@ def _stable(H, qm, tau):
 def _track(q_prev, H_prev, cidx_prev, qmc_prev, predict, dA, D, GJ, length, trust,
            qmask, psi0, tip_tube, cidx, qmask_c, bvec, h_c, ustar, EIw, EIws, GJw, Hsec,
            guide, gconst, phi, Qb, psec, p_h, p_inc, p_held, p_local, phi_m, Q_m, S, small,
-           Lc, consts, minimize, max_iter, tau, q_out, H, tip, R, res, it, conv, verdict):
+           Lc, consts, minimize, max_iter, tau, q_out, H, tip, R, res, it, conv, verdict, U):
     """Per element: the rotation predictor on the previous compact Hessian (where
-    ``predict``), the warm start masked to the new layout, compacted, the damped Newton solve,
-    the padded solution and its tip pose."""
+    ``predict``), the warm start masked to the new layout, compacted, the damped Newton solve
+    (its last energy into ``U``), the padded solution and its tip pose."""
     B, nq = q_prev.shape
     N = D.shape[1]
     nc = cidx.shape[1]
     ncp = cidx_prev.shape[1]
     dt = q_prev.dtype
     g = np.empty((B, nc), dtype=dt)
-    U = np.empty(B, dtype=dt)
     qc = np.empty((B, nc), dtype=dt)
     psi_tip = np.empty((B, N), dtype=dt)
     qi = np.empty(nq, dtype=dt)
@@ -197,13 +203,14 @@ class _Snapshot(NamedTuple):
 @cached_jit(nogil=True)
 def _control_rows(b, q, H, cidx, qmask_c, qmask, D, L, Ls, EI, GJ, coef, tau, psi0, start, h,
                   present, curved, active, presc, W, tip_tube, xq, wq, phi, Qb, xm, phi_m, Q_m,
-                  J, K):
+                  J, K, want_J):
     """Element ``b``'s control step at ``q`` with the compact Hessian ``H`` (its Schur
     complement: torchpvs.jacobians): the energy's rows ``U_qx, U_xx`` at fixed ``q`` on the
     layout given (a kink's side or the solution's own), ``Z = H^-1 U_qx``, ``K = sym(U_xx -
     U_xq Z)`` ``(2N, 2N)`` and ``J = P_x - P_q Z`` ``(6, 2N)`` as one complex step of the
     tip pose per actuator with ``q`` moving by ``-Z`` (:func:`torchpvs.compiled.
-    tip_directional`: ``P_q``, 6 x nq through the Magnus chain, is never formed)."""
+    tip_directional`: ``P_q``, 6 x nq through the Magnus chain, is never formed); ``J`` is
+    left as it is unless ``want_J`` (the stiffness alone is what time stepping needs)."""
     N = D.shape[1]
     m = 2 * N
     nq = q.shape[1]
@@ -235,14 +242,15 @@ def _control_rows(b, q, H, cidx, qmask_c, qmask, D, L, Ls, EI, GJ, coef, tau, ps
                     z[i] = np.nan
         for i in range(nc):
             Z[i, d] = z[i] * qmask_c[b, i]
-    dq = np.zeros((nq, m), dtype=dt)       # dq*/dx = -Z on the padded coordinates
-    for i in range(nc):
-        for c in range(m):
-            dq[cidx[b, i], c] = -Z[i, c] * qmask_c[b, i]
-    zero = np.zeros(N, dtype=dt)
-    tip_directional(q[b], dq, qmask[b], D[b], L[b], Ls[b], coef[b], tau[b], psi0[b],
-                    start[b], h[b], present[b], curved[b], presc[b], tip_tube[b], xm, phi_m,
-                    Q_m, zero, zero, J[b])
+    if want_J:
+        dq = np.zeros((nq, m), dtype=dt)       # dq*/dx = -Z on the padded coordinates
+        for i in range(nc):
+            for c in range(m):
+                dq[cidx[b, i], c] = -Z[i, c] * qmask_c[b, i]
+        zero = np.zeros(N, dtype=dt)
+        tip_directional(q[b], dq, qmask[b], D[b], L[b], Ls[b], coef[b], tau[b], psi0[b],
+                        start[b], h[b], present[b], curved[b], presc[b], tip_tube[b], xm,
+                        phi_m, Q_m, zero, zero, J[b])
     for a in range(m):
         for c in range(m):
             s = X[c, a]
@@ -309,6 +317,49 @@ def _side_forces(q, qmask, conv, sel, sj, Dn, EI, GJ, L, Ls, coef, A, unloaded, 
                      psi0[0], start[0], h[0], present[0], curved[0], active[0], presc[0], W[0],
                      xq, wq, phi, Qb, tD, tA)
         vals[r] = tD[sj[r]]
+
+
+@cached_jit(nogil=True)
+def _outer_twist(q, qmask, psi0, D, h, before_l1, presc_inc, n, twist):
+    """``twist (B, N-1)`` [rad]: ``psi_j - psi_1`` at the outer tube's end, wrapped to
+    ``(-pi, pi]`` (Equilibrium.relative_rotation_at_outer_tip: the angle at the orifice, the
+    guide twist ``D_j w_j``, then each section's increment ``h_k c_k,j,0`` plus a prescribed
+    section's twist, for the sections before ``l_1``)."""
+    B, N = D.shape
+    S = h.shape[1]
+    two_pi = 2.0 * math.pi
+    psi = np.empty(N, dtype=q.dtype)
+    for b in range(B):
+        for j in range(N):
+            a = psi0[b, j] + D[b, j] * (q[b, j] * qmask[b, j])
+            for k in range(S):
+                i = N + (k * (2 + N) + 2 + j) * n
+                a += (h[b, k] * (q[b, i] * qmask[b, i]) + presc_inc[b, k, j]) * before_l1[b, k]
+            psi[j] = a
+        for j in range(1, N):
+            r = math.pi - (psi[j] - psi[0])
+            twist[b, j - 1] = math.pi - (r - two_pi * math.floor(r / two_pi))
+
+
+@cached_jit(nogil=True)
+def _margin(H, qm):
+    """Equilibrium.min_stiffness_eigenvalue of one element: the smallest eigenvalue of the
+    Jacobi-scaled compact Hessian ``S H S`` on its active coordinates (NaN without any)."""
+    n = H.shape[0]
+    act = np.empty(n, dtype=np.int64)
+    m = 0
+    for i in range(n):
+        if qm[i] > 0 and abs(H[i, i]) > 0:
+            act[m] = i
+            m += 1
+    if m == 0:
+        return np.nan
+    A = np.empty((m, m), dtype=H.dtype)
+    for a in range(m):
+        for c in range(m):
+            i, j = act[a], act[c]
+            A[a, c] = H[i, j] / math.sqrt(abs(H[i, i]) * abs(H[j, j]))
+    return np.linalg.eigvalsh(A)[0]
 
 
 @cached_jit(nogil=True)
@@ -405,7 +456,7 @@ def _layout_and_track(EI, GJ, L, Ls, coef, D, A, unloaded, xg, wg, xq, wq, xm, n
                       H_prev, cidx_prev, qmc_prev, predict, dA, length, trust, phi, Qb, phi_m,
                       Q_m, small, consts, minimize, max_iter, tau, tip, R, res, it, conv,
                       verdict, jac, D_side, side, J, K, want_forces, tau_D, tau_A, sel, sj, Dn,
-                      hmax, side_vals):
+                      hmax, side_vals, want_J, U, twist, want_margin, margin):
     """:func:`torchpvs.compiled_layout.layout_maps_arrays` at ``(D, A)`` then :func:`_track`, in
     one call: only what the next step and the caller read is returned to Python, ``(q,
     H, cidx, qmask_c)`` (boxing each of the layout's 32 arrays costs about a microsecond).
@@ -414,12 +465,16 @@ def _layout_and_track(EI, GJ, L, Ls, coef, D, A, unloaded, xg, wg, xq, wq, xm, n
     this ``q`` and ``H`` where the layout there has the same active coordinates, else at the
     side's own equilibrium (one Newton solve from ``q``); ``side`` then reads 2. With
     ``want_forces``: the actuation forces and torques at the solution into ``tau_D, tau_A``
-    and the one-sided values at its kinks into ``side_vals`` (:func:`_side_forces`)."""
+    and the one-sided values at its kinks into ``side_vals`` (:func:`_side_forces`). Always:
+    the energy into ``U``, the relative rotations at the outer tube's end into ``twist`` (both
+    as :class:`~torchpvs.Equilibrium`); with ``want_margin`` its ``min_stiffness_eigenvalue``
+    into ``margin`` (:func:`_margin`). ``want_J`` False: the stiffness without the tip
+    Jacobian."""
     lay = layout_maps_arrays(EI, GJ, L, Ls, coef, D, A, unloaded, 1e-12, xg, wg, xq, wq, xm,
                              phi, n)
     (ell, tau_, start, h, present, curved, active, presc, qmask, psi0, gconst, W,
-     tip_tube, _s_tip, _before, _sec, psec, cidx, ustar, EIw, EIws, GJw, Hsec, guide,
-     bvec, qmask_c, h_c, _presc_inc, p_h, p_inc, p_held, p_local) = lay
+     tip_tube, _s_tip, before_l1, _sec, psec, cidx, ustar, EIw, EIws, GJw, Hsec, guide,
+     bvec, qmask_c, h_c, presc_inc, p_h, p_inc, p_held, p_local) = lay
     B, nq = q_prev.shape
     N = D.shape[1]
     nc = cidx.shape[1]
@@ -436,7 +491,11 @@ def _layout_and_track(EI, GJ, L, Ls, coef, D, A, unloaded, xg, wg, xq, wq, xm, n
     _track(q_prev, H_prev, cidx_prev, qmc_prev, predict, dA, D, GJ, length, trust, qmask,
            psi0, tip_tube, cidx, qmask_c, bvec, h_c, ustar, EIw, EIws, GJw, Hsec, guide,
            gconst, phi, Qb, psec, p_h, p_inc, p_held, p_local, phi_m, Q_m, h.shape[1], small,
-           Lc, consts, minimize, max_iter, tau, q, H, tip, R, res, it, conv, verdict)
+           Lc, consts, minimize, max_iter, tau, q, H, tip, R, res, it, conv, verdict, U)
+    _outer_twist(q, qmask, psi0, D, h, before_l1, presc_inc, n, twist)
+    if want_margin:
+        for b in range(B):
+            margin[b] = _margin(H[b], qmask_c[b])
     if want_forces:
         for b in range(B):
             if conv[b]:
@@ -480,7 +539,7 @@ def _layout_and_track(EI, GJ, L, Ls, coef, D, A, unloaded, xg, wg, xq, wq, xm, n
         if side[b] == 0:
             _control_rows(b, q, H, cidx, qmask_c, qmask, D, L, Ls, EI, GJ, coef, tau_, psi0,
                           start, h, present, curved, active, presc, W, tip_tube, xq, wq, phi,
-                          Qb, xm, phi_m, Q_m, J, K)
+                          Qb, xm, phi_m, Q_m, J, K, want_J)
             continue
         same = cidx2.shape[1] == cidx.shape[1]
         if same:
@@ -489,7 +548,7 @@ def _layout_and_track(EI, GJ, L, Ls, coef, D, A, unloaded, xg, wg, xq, wq, xm, n
         if same:
             _control_rows(b, q, H, cidx, qmask_c, qmask2, D_side, L, Ls, EI, GJ, coef, tau2,
                           psi02, start2, h2, present2, curved2, active2, presc2, W2, tip_tube2,
-                          xq, wq, phi, Qb, xm, phi_m, Q_m, J, K)
+                          xq, wq, phi, Qb, xm, phi_m, Q_m, J, K, want_J)
             continue
         # a coordinate appears on the side (a base leaving the orifice): its own equilibrium
         side[b] = 2
@@ -507,7 +566,7 @@ def _layout_and_track(EI, GJ, L, Ls, coef, D, A, unloaded, xg, wg, xq, wq, xm, n
             q2[b, cidx2[b, i]] = qc2[b, i]
         _control_rows(b, q2, H2, cidx2, qmask_c2, qmask2, D_side, L, Ls, EI, GJ, coef, tau2,
                       psi02, start2, h2, present2, curved2, active2, presc2, W2, tip_tube2,
-                      xq, wq, phi, Qb, xm, phi_m, Q_m, J, K)
+                      xq, wq, phi, Qb, xm, phi_m, Q_m, J, K, want_J)
     return q, H, cidx, qmask_c
 
 
@@ -609,9 +668,8 @@ class Tracker:
         self._tube_args = tuple(np.ascontiguousarray(np.broadcast_to(a, (B,) + a.shape[-k:]))
                                 for a, k in ((tb.EI, 1), (tb.GJ, 1), (tb.length, 1),
                                              (tb.straight, 1), (tb.coef, 3)))
-        self._unloaded = np.zeros(B, dtype=np.bool_)
+        self._tube_args_k = {B: (self._tube_args, np.zeros(B, dtype=np.bool_))}
         # (placeholders of the compiled call's Jacobian arguments when none are asked for)
-        self._no_side = np.zeros(B, dtype=np.int8)
         self._no_J, self._no_K = np.empty((B, 6, 2 * N)), np.empty((B, 2 * N, 2 * N))
         self._no_sel, self._no_Dn = np.zeros(0, dtype=np.int64), np.zeros((0, N))
         self._no_tau, self._no_vals = np.empty((B, N)), np.empty(0)
@@ -624,7 +682,10 @@ class Tracker:
                                 converged=eq.converged.numpy().copy(),
                                 residual=eq.residual_norm.detach().numpy().copy(),
                                 iterations=eq.iterations.numpy().copy(),
-                                stable=eq.stable.numpy().copy())
+                                stable=eq.stable.numpy().copy(),
+                                energy=eq.energy.detach().numpy().copy(),
+                                relative_rotation_at_outer_tip=(
+                                    eq.relative_rotation_at_outer_tip.detach().numpy().copy()))
 
     def equilibrium(self, options: SolverOptions | None = None):
         """:func:`torchpvs.solve` at the tracker's current actuation, warm from its
@@ -711,8 +772,8 @@ class Tracker:
         self._force_plan = (D.copy(), plan)
         return plan
 
-    def step(self, insertion, rotation, *, jacobians: bool = False,
-             forces: bool = False) -> TrackState:
+    def step(self, insertion, rotation, *, jacobians: bool = False, stiffness: bool = False,
+             forces: bool = False, margin: bool = False) -> TrackState:
         """The equilibrium at ``insertion`` ``(N,)``/``(B, N)`` [m] and ``rotation`` [rad],
         warm from the last state; becomes :attr:`state`. Elements that did not converge keep
         their result (``converged`` False, ``residual``): the next step starts from it, so a
@@ -720,8 +781,10 @@ class Tracker:
 
         ``jacobians=True``: the control step, the tip Jacobian and the actuator stiffness at
         the new equilibrium from its own Hessian (:class:`TrackState`), in the same compiled
-        call. ``forces=True``: the actuation forces and torques that hold it (closed form,
-        one-sided at kinks as :func:`torchpvs.solve` reports them), in the same call."""
+        call; ``stiffness=True`` the actuator stiffness alone. ``forces=True``: the actuation
+        forces and torques that hold it (closed form, one-sided at kinks as
+        :func:`torchpvs.solve` reports them), in the same call. ``margin=True``: the
+        stability margin (``min_stiffness_eigenvalue``)."""
         D = self._batched(insertion, "insertion")
         A = self._batched(rotation, "rotation")
         B = D.shape[0]
@@ -730,6 +793,58 @@ class Tracker:
         code = _check_and_wrap(D, A, self._D, self._A, predict, dA)
         if code:
             raise ValueError(_INPUT_ERRORS[code])
+        state, (q, H, cidx, qmask_c) = self._run(
+            D, A, (self._q, self._H, self._cidx, self._qmc), predict, dA, jacobians, stiffness,
+            forces, margin)
+        self._q, self._H, self._cidx, self._qmc, self._D, self._A = q, H, cidx, qmask_c, D, A
+        self.state = state
+        return state
+
+    def solve_from(self, initial, insertion, rotation, *, stiffness: bool = False,
+                   forces: bool = False, margin: bool = False) -> TrackState:
+        """The equilibria of ``k`` elements (any ``k``) at ``insertion``, ``rotation``
+        ``(k, N)`` [m], [rad], warm from ``initial`` ``(k, nq)`` (coordinates of nearby
+        equilibria, e.g. a :class:`TrackState`'s ``q``), at the tracker's discretization:
+        what ``torchpvs.solve(scene, insertion=..., rotation=..., initial=initial,
+        options=SolverOptions(order=k, n_magnus=m))`` computes (no rotation predictor: a
+        plain warm start). The tracker's own state is neither read nor changed: a batch that
+        keeps its own warm starts and retries steps (an environment's substeps) solves here.
+        ``stiffness``, ``forces``, ``margin`` as :meth:`step`."""
+        q0 = np.array(initial.detach().cpu().numpy() if isinstance(initial, torch.Tensor)
+                      else initial, dtype=np.float64, order="C")
+        D = np.array(insertion, dtype=np.float64, order="C")
+        A = np.array(rotation, dtype=np.float64, order="C")
+        k = q0.shape[0] if q0.ndim == 2 else -1
+        for name, a, n in (("initial", q0, self.nq), ("insertion", D, self.N),
+                           ("rotation", A, self.N)):
+            if a.ndim != 2 or a.shape != (k, n):
+                raise ValueError(f"{name} must have shape (k, {n}) with the same k for "
+                                 f"initial, insertion and rotation, got {a.shape}")
+        predict = np.zeros(k, dtype=np.bool_)
+        dA = np.empty_like(A)
+        code = _check_and_wrap(D, A, D, A.copy(), predict, dA)
+        if code:
+            raise ValueError(_INPUT_ERRORS[code])
+        predict[:] = False
+        none = (np.zeros((k, 1, 1)), np.zeros((k, 1), dtype=np.int64), np.zeros((k, 1)))
+        state, _ = self._run(D, A, (q0,) + none, predict, dA, False, stiffness, forces,
+                             margin)
+        return state
+
+    def _tube_args_for(self, k: int) -> tuple:
+        """``(tube arrays, unloaded)`` broadcast to ``k`` elements (the layout call reads
+        ``(k, ...)`` arrays)."""
+        args = self._tube_args_k.get(k)
+        if args is None:
+            args = (tuple(np.ascontiguousarray(np.broadcast_to(a[:1], (k,) + a.shape[1:]))
+                          for a in self._tube_args), np.zeros(k, dtype=np.bool_))
+            self._tube_args_k[k] = args
+        return args
+
+    def _run(self, D, A, prev, predict, dA, jacobians, stiffness, forces, margin):
+        """One compiled call at ``(D, A)`` (checked and wrapped) from ``prev = (q, H, cidx,
+        qmask_c)``: the :class:`TrackState` and the next ``prev``."""
+        B = D.shape[0]
         xg, wg, xq, wq, xm, _ = self._layout_tables
         tip = np.empty((B, 3))
         R = np.empty((B, 3, 3))
@@ -737,25 +852,31 @@ class Tracker:
         it = np.zeros(B, dtype=np.int64)
         conv = np.zeros(B, dtype=np.bool_)
         verdict = np.empty(B, dtype=np.int8)
+        U = np.empty(B)
+        twist = np.empty((B, max(self.N - 1, 0)))
+        marg = np.empty(B)
         m = 2 * self.N
-        if jacobians:
+        rows = jacobians or stiffness
+        if rows:
             side, D_side = self._kink_side(D)
             J, K = np.empty((B, 6, m)), np.empty((B, m, m))
         else:
-            side, D_side, J, K = self._no_side, D, self._no_J, self._no_K
+            side, D_side = np.zeros(B, dtype=np.int8), D
+            J, K = self._no_J[:1], self._no_K[:1]
         if forces:
             kink, blocked, sel, sj, Dn, n_r = self._kink_plan(D)
             tD, tA, vals = np.empty((B, self.N)), np.empty((B, self.N)), np.empty(len(sel))
         else:
             sel, sj, Dn = self._no_sel, self._no_sel, self._no_Dn
             tD, tA, vals = self._no_tau, self._no_tau, self._no_vals
+        tubes, unloaded = self._tube_args_for(B)
         q, H, cidx, qmask_c = _layout_and_track(
-            *self._tube_args, D, A, self._unloaded, xg, wg, xq, wq, xm, self._n, self._q,
-            self._H, self._cidx, self._qmc, predict, dA, self._length, PREDICTOR_TRUST,
-            self._phi, self._Qb, self._phi_m, self._Q_m, 1e-6, self._consts,
-            self.options.method == "minimize", self.options.max_iter, self._tau, tip, R, res,
-            it, conv, verdict, jacobians, D_side, side, J, K, forces, tD, tA, sel, sj, Dn,
-            self._hmax, vals)
+            *tubes, D, A, unloaded, xg, wg, xq, wq, xm, self._n,
+            *prev, predict, dA, self._length, PREDICTOR_TRUST, self._phi, self._Qb,
+            self._phi_m, self._Q_m, 1e-6, self._consts, self.options.method == "minimize",
+            self.options.max_iter, self._tau, tip, R, res, it, conv, verdict, rows, D_side,
+            side, J, K, forces, tD, tA, sel, sj, Dn, self._hmax, vals, jacobians, U, twist,
+            margin, marg)
         out = {}
         if forces:
             retract = tD.copy()
@@ -765,9 +886,10 @@ class Tracker:
             ins[sel[n_r:], sj[n_r:]] = vals[n_r:]
             out = {"actuation_forces": retract, "actuation_torques": tA,
                    "actuation_forces_insertion": ins, "force_kink": kink.copy()}
-        self._q, self._H, self._cidx, self._qmc, self._D, self._A = q, H, cidx, qmask_c, D, A
-        self.state = TrackState(q=q, tip=tip, R=R, converged=conv, residual=res, iterations=it,
-                                stable=conv & (verdict == 1),
-                                tip_jacobian=J if jacobians else None,
-                                actuator_stiffness=K if jacobians else None, **out)
-        return self.state
+        state = TrackState(q=q, tip=tip, R=R, converged=conv, residual=res, iterations=it,
+                           stable=conv & (verdict == 1), energy=U,
+                           relative_rotation_at_outer_tip=twist,
+                           min_stiffness_eigenvalue=marg if margin else None,
+                           tip_jacobian=J if jacobians else None,
+                           actuator_stiffness=K if rows else None, **out)
+        return state, (q, H, cidx, qmask_c)

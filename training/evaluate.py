@@ -41,7 +41,7 @@ TOLERANCES = (1e-3, 2e-3, 5e-3)
 # action/observation options, the carriage model) are the policy's and are kept.
 TASK_NOT_POLICY = ("reward", "dense_scale", "tolerance", "snap_penalty", "snap_mode",
                    "goal_min_distance", "max_episode_steps", "render_mode", "plant_scale",
-                   "tip_force", "tip_noise", "stiffness_penalty", "stiffness_hazard")
+                   "tip_force", "tip_noise", "stiffness_penalty", "stiffness_hazard", "solver")
 
 
 def rollout(policy, venv, n_episodes: int, seed: int = 12345, progress: bool = True,

@@ -21,17 +21,22 @@ def _bench():
 
 
 @pytest.mark.filterwarnings("ignore::RuntimeWarning")
-def test_the_breakdown_names_stages_that_a_step_calls(capsys):
+@pytest.mark.parametrize("solver, stages", [
+    ("torch", ("solves", "layout + maps, compiled", "compiled Newton", "actuator stiffness",
+               "stability margin", "substep count")),
+    ("auto", ("solves", "one compiled call each", "actuator stiffness (its rows)",
+              "substep count")),
+])
+def test_the_breakdown_names_stages_that_a_step_calls(capsys, solver, stages):
     bench = _bench()
-    bench.breakdown("fig3_two_tube", 4, 2)
+    bench.breakdown("fig3_two_tube", 4, 2, solver)
     out = capsys.readouterr().out
     rows = {m.group(1).strip(): (float(m.group(2)), float(m.group(4)))
             for m in re.finditer(r"^(\s*[a-zA-Z].*?)\s+(\d+\.\d+)\s+(\d+\.\d+)\s+(\d+)%$", out,
                                  re.M)}
     assert rows["step (all)"] == (1.0, 100.0)
     # the stages every force step goes through: called, and each a part of the step
-    for stage in ("solves", "layout + maps, compiled", "compiled Newton",
-                  "actuator stiffness", "stability margin"):
+    for stage in stages:
         calls, share = rows[stage]
         assert calls > 0, stage
         assert 0 <= share <= 100, stage
