@@ -407,3 +407,22 @@ def test_solve_from_checks_its_inputs():
         tr.solve_from(q, D * np.nan, A)
     with pytest.raises(ValueError, match="D_j must be >= D_{j-1}"):
         tr.solve_from(q, D[:, ::-1] + [[0.0, -0.01]], A)
+
+
+@settings(max_examples=60, deadline=None, suppress_health_check=[HealthCheck.too_slow])
+@given(m=st.integers(1, 40), seed=st.integers(0, 2**31), scale=st.floats(1e-3, 1e3),
+       kind=st.sampled_from(["indefinite", "definite", "scaled"]))
+def test_min_eigenvalue_is_lapacks(m, seed, scale, kind):
+    """The margin's eigenvalue routine (tridiagonal reduction and multisection) against
+    LAPACK's full spectrum (``numpy.linalg.eigvalsh``), to round-off of the spectrum's size."""
+    from torchpvs.tracker import min_eigenvalue
+    rng = np.random.default_rng(seed)
+    M = rng.normal(size=(m, m)) * scale
+    A = {"indefinite": 0.5 * (M + M.T), "definite": M @ M.T}.get(kind)
+    if A is None:   # the margin's own kind: unit diagonal (Jacobi-scaled), near singular
+        S = M @ M.T + 1e-9 * np.eye(m)
+        d = np.sqrt(np.diag(S))
+        A = S / d[:, None] / d[None, :]
+    ref = np.linalg.eigvalsh(A)
+    got = min_eigenvalue(A.copy())
+    assert abs(got - ref[0]) <= 1e-13 * max(1.0, np.abs(ref).max())

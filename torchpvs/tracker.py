@@ -29,7 +29,8 @@ Where it applies: CPU, float64, numba importable, an unloaded scene.
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, replace
+from concurrent.futures import ThreadPoolExecutor
+from dataclasses import dataclass, fields, replace
 from typing import NamedTuple
 
 import numpy as np
@@ -216,15 +217,39 @@ def _control_rows(b, q, H, cidx, qmask_c, qmask, D, L, Ls, EI, GJ, coef, tau, ps
     nq = q.shape[1]
     nc = cidx.shape[1]
     dt = q.dtype
-    Gq = np.empty((m, nq), dtype=dt)
+    # where every guide twist w_j is a coordinate (every D_j > 0), the rotation rows are read
+    # off H (torchpvs.jacobians._rotation_rows_from_hessian: U depends on alpha_j and w_j
+    # only through alpha_j + D_j w_j, plus the guide's GJ_j D_j w_j^2 / 2); the insertion
+    # rows by a complex step each
+    iw = np.full(N, -1, dtype=np.int64)
+    for i in range(nc):
+        c = cidx[b, i]
+        if c < N and qmask_c[b, i] > 0:
+            iw[c] = i
+    from_H = True
+    for j in range(N):
+        from_H = from_H and iw[j] >= 0 and qmask[b, j] > 0 and D[b, j] > 0
+    n_rows = N if from_H else m
+    Gq = np.empty((n_rows, nq), dtype=dt)
     X = np.empty((m, m), dtype=dt)
     stiffness_rows_one(q[b], qmask[b], D[b], L[b], Ls[b], EI[b], GJ[b], coef[b], tau[b],
                        psi0[b], start[b], h[b], present[b], curved[b], active[b], presc[b],
-                       W[b], xq, wq, phi, Qb, Gq, X)
+                       W[b], xq, wq, phi, Qb, Gq, X[:n_rows])
     G = np.empty((m, nc), dtype=dt)
-    for d in range(m):
+    for d in range(n_rows):
         for i in range(nc):
             G[d, i] = Gq[d, cidx[b, i]] * qmask_c[b, i]
+    if from_H:
+        for j in range(N):
+            a = N + j
+            gjd = GJ[b, j] * D[b, j]
+            for i in range(nc):
+                v = H[b, iw[j], i] - (gjd if i == iw[j] else 0.0)
+                G[a, i] = v / D[b, j] * qmask_c[b, i]
+            for k in range(N):
+                X[a, k] = X[k, a]                    # dtau_D_k / dalpha_j = dtau_alpha_j / dD_k
+                v = H[b, iw[j], iw[k]] - (gjd if j == k else 0.0)
+                X[a, N + k] = v / (D[b, j] * D[b, k])
     Z = np.empty((nc, m), dtype=dt)
     Lf = np.empty((nc, nc), dtype=dt)
     rhs = np.empty(nc, dtype=dt)
@@ -359,7 +384,105 @@ def _margin(H, qm):
         for c in range(m):
             i, j = act[a], act[c]
             A[a, c] = H[i, j] / math.sqrt(abs(H[i, i]) * abs(H[j, j]))
-    return np.linalg.eigvalsh(A)[0]
+    return min_eigenvalue(A)
+
+
+@cached_jit(nogil=True)
+def min_eigenvalue(A):
+    """The smallest eigenvalue of a symmetric ``A (m, m)`` (its lower triangle is read and
+    overwritten): Householder reduction to tridiagonal form on the lower triangle, then
+    Sturm-sequence multisection (three points per round) to round-off. At the environments'
+    sizes (m ~ 26) several times faster than LAPACK's ``syevd`` through
+    ``np.linalg.eigvalsh`` (29 us), which computes the whole spectrum; the two agree to
+    round-off (``tests/test_tracker.py``)."""
+    m = A.shape[0]
+    v = np.empty(m, dtype=A.dtype)
+    p = np.empty(m, dtype=A.dtype)
+    for k in range(m - 2):
+        # the Householder vector of A[k+1:, k]
+        alpha = 0.0
+        for i in range(k + 1, m):
+            alpha += A[i, k] * A[i, k]
+        alpha = math.sqrt(alpha)
+        if alpha == 0.0:
+            continue
+        if A[k + 1, k] > 0:
+            alpha = -alpha
+        for i in range(k + 1, m):
+            v[i] = A[i, k]
+        v[k + 1] -= alpha
+        vv = 0.0
+        for i in range(k + 1, m):
+            vv += v[i] * v[i]
+        if vv == 0.0:
+            continue
+        beta = 2.0 / vv
+        # p = beta A v on the trailing block, reading its lower triangle row by row
+        for i in range(k + 1, m):
+            p[i] = 0.0
+        for i in range(k + 1, m):
+            s = A[i, i] * v[i]
+            vi = v[i]
+            for j in range(k + 1, i):
+                s += A[i, j] * v[j]
+                p[j] += A[i, j] * vi
+            p[i] += s
+        pv = 0.0
+        for i in range(k + 1, m):
+            p[i] *= beta
+            pv += p[i] * v[i]
+        c = 0.5 * beta * pv
+        for i in range(k + 1, m):
+            p[i] -= c * v[i]
+        # A <- P A P, P = I - beta v v^T: a rank-2 update of the lower triangle
+        for i in range(k + 1, m):
+            vi, pi = v[i], p[i]
+            for j in range(k + 1, i + 1):
+                A[i, j] -= vi * p[j] + pi * v[j]
+        A[k + 1, k] = alpha
+    # the tridiagonal: d = A[i, i], e_i = A[i, i - 1]. Gershgorin bounds, then the count of
+    # eigenvalues below x (the signs of the LDL^T pivots of T - x I) at three points a round
+    lo = math.inf
+    hi = math.inf
+    for i in range(m):
+        r = (abs(A[i, i - 1]) if i > 0 else 0.0) + (abs(A[i + 1, i]) if i < m - 1 else 0.0)
+        lo = min(lo, A[i, i] - r)
+        hi = min(hi, A[i, i])          # the smallest eigenvalue is <= every diagonal entry
+    eps = np.finfo(A.dtype).eps
+    tiny = np.finfo(A.dtype).tiny
+    for _ in range(200):
+        w = hi - lo
+        if w <= 2.0 * eps * max(abs(lo), abs(hi)) + tiny:
+            break
+        x1 = lo + 0.25 * w
+        x2 = lo + 0.5 * w
+        x3 = lo + 0.75 * w
+        q1 = A[0, 0] - x1
+        q2 = A[0, 0] - x2
+        q3 = A[0, 0] - x3
+        n1 = 1 if q1 < 0 else 0
+        n2 = 1 if q2 < 0 else 0
+        n3 = 1 if q3 < 0 else 0
+        for i in range(1, m):
+            e2 = A[i, i - 1] * A[i, i - 1]
+            guard = eps * abs(A[i - 1, i - 1]) + tiny
+            q1 = A[i, i] - x1 - e2 / (q1 if q1 != 0.0 else guard)
+            q2 = A[i, i] - x2 - e2 / (q2 if q2 != 0.0 else guard)
+            q3 = A[i, i] - x3 - e2 / (q3 if q3 != 0.0 else guard)
+            n1 += 1 if q1 < 0 else 0
+            n2 += 1 if q2 < 0 else 0
+            n3 += 1 if q3 < 0 else 0
+        if n1 >= 1:
+            hi = x1
+        elif n2 >= 1:
+            lo, hi = x1, x2
+        elif n3 >= 1:
+            lo, hi = x2, x3
+        else:
+            lo = x3
+        if not (lo < hi):
+            break
+    return 0.5 * (lo + hi)
 
 
 @cached_jit(nogil=True)
@@ -434,6 +557,10 @@ def _kink_mask(L, Ls, curved, D, tol, kink):
                             k = True
             kink[b, j] = k
 
+
+# the fewest rows a thread of Tracker.solve_from takes (below it the thread's start costs
+# more than the rows)
+_MIN_CHUNK = 16
 
 _INPUT_ERRORS = {
     1: "insertion must be finite",
@@ -669,6 +796,7 @@ class Tracker:
                                 for a, k in ((tb.EI, 1), (tb.GJ, 1), (tb.length, 1),
                                              (tb.straight, 1), (tb.coef, 3)))
         self._tube_args_k = {B: (self._tube_args, np.zeros(B, dtype=np.bool_))}
+        self._pool: ThreadPoolExecutor | None = None    # solve_from's threads, made on use
         # (placeholders of the compiled call's Jacobian arguments when none are asked for)
         self._no_J, self._no_K = np.empty((B, 6, 2 * N)), np.empty((B, 2 * N, 2 * N))
         self._no_sel, self._no_Dn = np.zeros(0, dtype=np.int64), np.zeros((0, N))
@@ -801,7 +929,8 @@ class Tracker:
         return state
 
     def solve_from(self, initial, insertion, rotation, *, stiffness: bool = False,
-                   forces: bool = False, margin: bool = False) -> TrackState:
+                   forces: bool = False, margin: bool = False,
+                   threads: int | None = None) -> TrackState:
         """The equilibria of ``k`` elements (any ``k``) at ``insertion``, ``rotation``
         ``(k, N)`` [m], [rad], warm from ``initial`` ``(k, nq)`` (coordinates of nearby
         equilibria, e.g. a :class:`TrackState`'s ``q``), at the tracker's discretization:
@@ -809,7 +938,11 @@ class Tracker:
         options=SolverOptions(order=k, n_magnus=m))`` computes (no rotation predictor: a
         plain warm start). The tracker's own state is neither read nor changed: a batch that
         keeps its own warm starts and retries steps (an environment's substeps) solves here.
-        ``stiffness``, ``forces``, ``margin`` as :meth:`step`."""
+        ``stiffness``, ``forces``, ``margin`` as :meth:`step`.
+
+        ``threads`` (default ``torch.get_num_threads()``): the rows are split into that many
+        contiguous chunks solved at once (the compiled calls release the GIL), from 16 rows a
+        chunk; every row's result is the same as in one call."""
         q0 = np.array(initial.detach().cpu().numpy() if isinstance(initial, torch.Tensor)
                       else initial, dtype=np.float64, order="C")
         D = np.array(insertion, dtype=np.float64, order="C")
@@ -826,10 +959,26 @@ class Tracker:
         if code:
             raise ValueError(_INPUT_ERRORS[code])
         predict[:] = False
-        none = (np.zeros((k, 1, 1)), np.zeros((k, 1), dtype=np.int64), np.zeros((k, 1)))
-        state, _ = self._run(D, A, (q0,) + none, predict, dA, False, stiffness, forces,
-                             margin)
-        return state
+        T = torch.get_num_threads() if threads is None else threads
+        if isinstance(T, bool) or not isinstance(T, (int, np.integer)) or T < 1:
+            raise ValueError(f"threads must be an integer >= 1, got {threads!r}")
+        T = int(min(T, k // _MIN_CHUNK)) if k >= 2 * _MIN_CHUNK else 1
+
+        def run(lo: int, hi: int) -> TrackState:
+            n = hi - lo
+            none = (np.zeros((n, 1, 1)), np.zeros((n, 1), dtype=np.int64), np.zeros((n, 1)))
+            return self._run(D[lo:hi], A[lo:hi], (q0[lo:hi],) + none, predict[lo:hi],
+                             dA[lo:hi], False, stiffness, forces, margin)[0]
+
+        if T == 1:
+            return run(0, k)
+        cuts = np.linspace(0, k, T + 1).astype(int)
+        if self._pool is None or self._pool._max_workers < T:
+            self._pool = ThreadPoolExecutor(max_workers=T, thread_name_prefix="tracker")
+        parts = list(self._pool.map(run, cuts[:-1], cuts[1:]))
+        return TrackState(**{f.name: (None if getattr(parts[0], f.name) is None else
+                                      np.concatenate([getattr(p, f.name) for p in parts]))
+                             for f in fields(TrackState)})
 
     def _tube_args_for(self, k: int) -> tuple:
         """``(tube arrays, unloaded)`` broadcast to ``k`` elements (the layout call reads
