@@ -168,6 +168,9 @@ def main(argv=None) -> dict:
     ap.add_argument("--batches", type=int, nargs="+", default=[1, 64, 1024])
     ap.add_argument("--repeat", type=int, default=3)
     ap.add_argument("--env", action="store_true", help="also the force env's robot-steps/s")
+    ap.add_argument("--env-threads", type=int, default=1,
+                    help="torch threads for the env's timing (its compiled solves split the "
+                         "batch across them; the solver figures stay on one thread)")
     ap.add_argument("--json", help="write the figures to this JSON file")
     ap.add_argument("--markdown", metavar="JSON",
                     help="print the markdown tables of a saved run (no measurement)")
@@ -182,7 +185,9 @@ def main(argv=None) -> dict:
     for name in args.robots:
         r = bench_robot(name, args.configs, args.batches, args.repeat)
         if args.env and name == "fig3":
+            torch.set_num_threads(args.env_threads)
             r.update(bench_env(r["reference_ms"], args.repeat))
+            torch.set_num_threads(1)
         results.append(r)
         _print(r, args.batches)
     if args.json:
