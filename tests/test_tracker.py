@@ -426,3 +426,30 @@ def test_min_eigenvalue_is_lapacks(m, seed, scale, kind):
     ref = np.linalg.eigvalsh(A)
     got = min_eigenvalue(A.copy())
     assert abs(got - ref[0]) <= 1e-13 * max(1.0, np.abs(ref).max())
+
+
+def test_solve_from_in_threads_equals_one_call():
+    """Rows split into chunks solved in threads (``threads=2``): every row's result is the one
+    call's, bit for bit; a bad thread count names the field."""
+    scene = tp.load_scene("renda2021_fig3")
+    opts = tp.SolverOptions(order=2, n_magnus=8)
+    rng = np.random.default_rng(9)
+    k = 40
+    D = np.maximum.accumulate(np.array(scene.actuation.insertion)
+                              + rng.uniform(-0.01, 0.01, (k, 2)), -1).clip(0, None)
+    A = rng.uniform(-math.pi, math.pi, (k, 2))
+    eq = tp.solve(scene, insertion=torch.from_numpy(D), rotation=torch.from_numpy(A),
+                  options=opts)
+    tr = tp.Tracker(scene, options=opts)
+    D1, A1 = np.maximum.accumulate(D + rng.normal(0, 5e-4, (k, 2)), -1).clip(0, None), A + 0.02
+    one = tr.solve_from(eq.q, D1, A1, stiffness=True, forces=True, margin=True, threads=1)
+    two = tr.solve_from(eq.q, D1, A1, stiffness=True, forces=True, margin=True, threads=2)
+    for f in dataclasses.fields(one):
+        a, b = getattr(one, f.name), getattr(two, f.name)
+        if a is None:
+            assert b is None, f.name
+        else:
+            np.testing.assert_array_equal(b, a, err_msg=f.name)
+    assert one.converged.all()
+    with pytest.raises(ValueError, match="threads must be an integer >= 1"):
+        tr.solve_from(eq.q, D1, A1, threads=0)
