@@ -95,10 +95,12 @@ def bench_batched(robot: str, control: str, B: int, n_steps: int, solver: str = 
 
 # (label, module, qualified name) of the stages --breakdown reports, outermost first, for each
 # env solver (envs.plant.SOLVERS): torchpvs' solve, and the compiled warm solve
+_STEP = (("step (all)", "envs.dynamics", "RobotBatch.step_force"),
+         ("  solves", "envs.plant", "Plants.warm"))
+_ENV = (("  substep count", "envs.dynamics", "RobotBatch.n_substeps"),
+        ("  contact", "envs.dynamics", "RobotBatch._contact"))
 _STAGES = {
-    "torch": (
-        ("step (all)", "envs.dynamics", "RobotBatch.step_force"),
-        ("  solves", "envs.plant", "Plants.warm"),
+    "torch": _STEP + (
         ("    layout + maps, compiled", "torchpvs.compiled_layout", "layout_and_maps"),
         ("    layout (eager build_layout)", "torchpvs.sections", "build_layout"),
         ("    maps (eager build_maps)", "torchpvs.mechanics", "build_maps"),
@@ -109,17 +111,11 @@ _STAGES = {
         ("  actuator stiffness", "torchpvs.jacobians", "actuator_stiffness"),
         ("    its factorization", "torchpvs.implicit", "adjoint_factor"),
         ("  stability margin", "torchpvs.equilibrium", "Equilibrium.min_stiffness_eigenvalue"),
-        ("  substep count", "envs.dynamics", "RobotBatch.n_substeps"),
-        ("  contact", "envs.dynamics", "RobotBatch._contact"),
-    ),
-    "auto": (
-        ("step (all)", "envs.dynamics", "RobotBatch.step_force"),
-        ("  solves", "envs.plant", "Plants.warm"),
+    ) + _ENV,
+    "auto": _STEP + (
         ("    one compiled call each", "torchpvs.tracker", "Tracker._run"),
         ("  actuator stiffness (its rows)", "envs.dynamics", "RobotBatch._stiffness_of"),
-        ("  substep count", "envs.dynamics", "RobotBatch.n_substeps"),
-        ("  contact", "envs.dynamics", "RobotBatch._contact"),
-    ),
+    ) + _ENV,
 }
 
 

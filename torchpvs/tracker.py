@@ -109,9 +109,10 @@ class TrackState:
 
 
 @cached_jit(nogil=True)
-def _stable(H, qm, tau):
-    """Equilibrium.stable for an element without the kernel's verdict: the Jacobi-scaled
-    stiffness on the active coordinates minus ``tau`` is positive definite."""
+def _scaled_active(H, qm):
+    """The Jacobi-scaled stiffness ``S H S`` (``S = diag(|H_ii|^-1/2)``) on the active
+    coordinates of a compact Hessian ``H`` (``qm`` its active mask): ``(m, m)``, the matrix
+    Equilibrium.stable and min_stiffness_eigenvalue are decided on."""
     n = H.shape[0]
     act = np.empty(n, dtype=np.int64)
     m = 0
@@ -124,6 +125,16 @@ def _stable(H, qm, tau):
         for c in range(m):
             i, j = act[a], act[c]
             A[a, c] = H[i, j] / math.sqrt(abs(H[i, i]) * abs(H[j, j]))
+    return A
+
+
+@cached_jit(nogil=True)
+def _stable(H, qm, tau):
+    """Equilibrium.stable for an element without the kernel's verdict: the Jacobi-scaled
+    stiffness on the active coordinates minus ``tau`` is positive definite."""
+    A = _scaled_active(H, qm)
+    m = A.shape[0]
+    for a in range(m):
         A[a, a] -= tau
     return cholesky(A, np.empty((m, m), dtype=H.dtype))
 
@@ -370,20 +381,9 @@ def _outer_twist(q, qmask, psi0, D, h, before_l1, presc_inc, n, twist):
 def _margin(H, qm):
     """Equilibrium.min_stiffness_eigenvalue of one element: the smallest eigenvalue of the
     Jacobi-scaled compact Hessian ``S H S`` on its active coordinates (NaN without any)."""
-    n = H.shape[0]
-    act = np.empty(n, dtype=np.int64)
-    m = 0
-    for i in range(n):
-        if qm[i] > 0 and abs(H[i, i]) > 0:
-            act[m] = i
-            m += 1
-    if m == 0:
+    A = _scaled_active(H, qm)
+    if A.shape[0] == 0:
         return np.nan
-    A = np.empty((m, m), dtype=H.dtype)
-    for a in range(m):
-        for c in range(m):
-            i, j = act[a], act[c]
-            A[a, c] = H[i, j] / math.sqrt(abs(H[i, i]) * abs(H[j, j]))
     return min_eigenvalue(A)
 
 
