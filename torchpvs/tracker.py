@@ -23,6 +23,11 @@ re-check the discretization, carry gradients or take a tip load; for those, and 
 does not converge, :func:`torchpvs.solve` is the tool (:meth:`Tracker.equilibrium` runs it at
 the tracker's state).
 
+:meth:`Tracker.solve_from` is the same call for any rows from warm starts the caller keeps
+(no predictor, the tracker's state untouched; optionally split across threads): the
+environments' substeps (``envs/plant.py``) solve there, with the stability margin, the
+relative twist, the energy and the actuator stiffness from the same call.
+
 Where it applies: CPU, float64, numba importable, an unloaded scene.
 """
 
@@ -728,7 +733,8 @@ class Tracker:
     :class:`TrackState`), ``batch``.
 
     :meth:`snapshot` and :meth:`restore` save and return to a state (e.g. to try several
-    actions from one state, as a sampling planner or MPC does).
+    actions from one state, as a sampling planner or MPC does); :meth:`solve_from` solves any
+    rows from warm starts the caller keeps (the environments' substeps).
     """
 
     def __init__(self, scene: Scene | str, *, insertion=None, rotation=None,
