@@ -721,6 +721,15 @@ class ReachBatch:
         Python scalars for per-robot scalars, array copies for per-robot vectors."""
         return {k: (v[i].copy() if v.ndim > 1 else v[i].item()) for k, v in infos.items()}
 
+    @staticmethod
+    def info_list(infos: dict[str, np.ndarray], n: int) -> list[dict]:
+        """The ``n`` robots' :meth:`info_of`, the scalars converted once per key
+        (``tolist``: the same Python scalars as ``item``, without a call per robot and
+        key)."""
+        cols = {k: v.tolist() if v.ndim == 1 else None for k, v in infos.items()}
+        return [{k: (v[i].copy() if cols[k] is None else cols[k][i]) for k, v in infos.items()}
+                for i in range(n)]
+
     def _goal_distance32(self) -> np.ndarray:
         """``(B,)`` distance from the float32 goals of the observation (what
         ``compute_reward`` sees), so that the step reward, ``is_success`` and

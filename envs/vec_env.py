@@ -85,13 +85,11 @@ class CTRReachVecEnv(VecEnv):
         truncated = truncated | time_limit
         dones = terminated | truncated
         obs = self.task.observations()
-        info_list = []
-        for i in range(self.num_envs):
-            info = self.task.info_of(infos, i)
+        info_list = self.task.info_list(infos, self.num_envs)
+        for i, info in enumerate(info_list):
             info["TimeLimit.truncated"] = bool(truncated[i] and not terminated[i])
             if dones[i]:
                 info["terminal_observation"] = {k: v[i].copy() for k, v in obs.items()}
-            info_list.append(info)
         done_idx = np.flatnonzero(dones)
         if len(done_idx):
             self.task.reset(done_idx)

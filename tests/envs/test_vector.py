@@ -217,3 +217,20 @@ def test_compute_reward_matches_the_single_env():
     rng = np.random.default_rng(1)
     ag, dg = rng.normal(size=(5, 3)) * 0.01, rng.normal(size=(5, 3)) * 0.01
     np.testing.assert_array_equal(v.compute_reward(ag, dg, {}), e.compute_reward(ag, dg, {}))
+
+
+def test_info_list_is_info_of_for_every_robot():
+    """The VecEnv's per-step infos, converted once per key (ReachBatch.info_list), are each
+    robot's info_of: the same keys, values and Python types."""
+    import envs
+    venv = envs.CTRReachVecEnv(5)
+    venv.seed(2)
+    venv.reset()
+    _, _, _, batched = venv.task.step_checked(np.zeros((5, 4), dtype=np.float32))
+    fast = venv.task.info_list(batched, 5)
+    for i in range(5):
+        ref = venv.task.info_of(batched, i)
+        assert list(fast[i]) == list(ref)
+        for k, v in ref.items():
+            assert type(fast[i][k]) is type(v), k
+            np.testing.assert_array_equal(fast[i][k], v)
