@@ -194,8 +194,9 @@ class StepFlags(NamedTuple):
 
 
 class RobotBatch:
-    """State and stepping of ``B`` robots: numpy state throughout, one batched torch solve
-    per substep (actuations in, :class:`envs.plant.Solved` arrays out).
+    """State and stepping of ``B`` robots: numpy state throughout, one batched solve per
+    substep (the compiled warm solve, or ``torchpvs.solve``: :meth:`envs.plant.Plants.warm`;
+    actuations in, :class:`envs.plant.Solved` arrays out).
 
     State arrays (float64): ``x (B, 2N)``, ``v (B, 2N)``, ``g (B, 2N)`` [N, N·m],
     ``tip (B, 3)`` [m] in the base frame, ``margin (B,)`` (smallest scaled stiffness
