@@ -61,11 +61,16 @@ class Solved(NamedTuple):
     stiffness: Callable[[np.ndarray], np.ndarray]
 
 
+def _usable(converged: np.ndarray, g: np.ndarray, tip: np.ndarray) -> np.ndarray:
+    """``(k,)``: converged with finite loads and tip (a substep can take the state)."""
+    return converged & np.isfinite(g).all(-1) & np.isfinite(tip).all(-1)
+
+
 def solved_from(eq) -> Solved:
     """:class:`Solved` of an :class:`~torchpvs.Equilibrium` (its stiffness on request)."""
     g = torch.cat([eq.actuation_forces, eq.actuation_torques], -1).numpy()
     tip = eq.tip_position.numpy()
-    ok = eq.converged.numpy() & np.isfinite(g).all(-1) & np.isfinite(tip).all(-1)
+    ok = _usable(eq.converged.numpy(), g, tip)
     return Solved(g=g, tip=tip, margin=eq.min_stiffness_eigenvalue.numpy(),
                   twist=eq.relative_rotation_at_outer_tip.numpy(),
                   energy=eq.energy.detach().numpy(), q=eq.q.detach().numpy(), ok=ok,
@@ -157,7 +162,6 @@ class Plants:
                                 self.factors[rows], self.tip_force[rows], initial,
                                 base=self._base)
 
-
     def warm(self, x: np.ndarray, rows: np.ndarray, q0: np.ndarray,
              stiffness: bool = False) -> Solved:
         """:class:`Solved` of robots ``rows`` at feasible, finite ``x (len(rows), 2N)``, warm
@@ -170,7 +174,7 @@ class Plants:
         st = self.tracker.solve_from(q0, x[:, :N], x[:, N:], stiffness=stiffness,
                                      forces=True, margin=True)
         g = np.concatenate([st.actuation_forces, st.actuation_torques], -1)
-        ok = st.converged & np.isfinite(g).all(-1) & np.isfinite(st.tip).all(-1)
+        ok = _usable(st.converged, g, st.tip)
         K = st.actuator_stiffness
 
         def stiffness_of(r: np.ndarray) -> np.ndarray:
