@@ -803,6 +803,7 @@ class Tracker:
                                              (tb.straight, 1), (tb.coef, 3)))
         self._tube_args_k = {B: (self._tube_args, np.zeros(B, dtype=np.bool_))}
         self._pool: ThreadPoolExecutor | None = None    # solve_from's threads, made on use
+        self._pool_size = 0
         # (placeholders of the compiled call's Jacobian arguments when none are asked for)
         self._no_J, self._no_K = np.empty((B, 6, 2 * N)), np.empty((B, 2 * N, 2 * N))
         self._no_sel, self._no_Dn = np.zeros(0, dtype=np.int64), np.zeros((0, N))
@@ -979,8 +980,9 @@ class Tracker:
         if T == 1:
             return run(0, k)
         cuts = np.linspace(0, k, T + 1).astype(int)
-        if self._pool is None or self._pool._max_workers < T:
+        if self._pool is None or self._pool_size < T:
             self._pool = ThreadPoolExecutor(max_workers=T, thread_name_prefix="tracker")
+            self._pool_size = T
         parts = list(self._pool.map(run, cuts[:-1], cuts[1:]))
         return TrackState(**{f.name: (None if getattr(parts[0], f.name) is None else
                                       np.concatenate([getattr(p, f.name) for p in parts]))
