@@ -509,6 +509,31 @@ def test_the_loaded_actuator_stiffness_is_the_same_on_both_kernels(monkeypatch):
                                atol=1e-9 * float(Je.tip_jacobian.abs().max()))
 
 
+def test_cos_sin_of_a_complex_step_is_numbas_complex_cos_and_sin_bit_for_bit():
+    """``compiled.cos_sin`` (the complex steps' angles) against numba's own ``np.cos`` and
+    ``np.sin`` of complex arguments, element by element: equal bit for bit with the complex
+    steps' imaginary parts (1e-30..1e-9, any real part) and beyond them (1e-9..1, where it
+    falls back to the complex functions); real arguments give math.cos and math.sin."""
+    from numba import njit
+
+    @njit
+    def both(z, ref, new):
+        for i in range(z.shape[0]):
+            ref[i, 0], ref[i, 1] = np.cos(z[i]), np.sin(z[i])
+            new[i, 0], new[i, 1] = compiled.cos_sin(z[i])
+
+    rng = np.random.default_rng(0)
+    a = rng.uniform(-50, 50, 20000)
+    b = rng.choice([-1.0, 1.0], 20000) * 10.0 ** rng.uniform(-30, 0, 20000)
+    z = a + 1j * b
+    ref, new = np.empty((len(z), 2), complex), np.empty((len(z), 2), complex)
+    both(z, ref, new)
+    assert np.array_equal(ref.view(np.float64), new.view(np.float64))
+    r_ref, r_new = np.empty((len(a), 2)), np.empty((len(a), 2))
+    both(a, r_ref, r_new)
+    assert np.array_equal(r_new, np.stack([np.cos(a), np.sin(a)], -1))
+
+
 @pytest.mark.parametrize("angle", [0.0, 1e-7, 0.05, 0.3162, 0.3163, 1.0, 3.0])
 def test_the_se3_right_jacobian_is_the_derivative_of_the_matrix_exponential(angle):
     """``compiled.se3_right_jacobian`` (the tip partials' chain): ``exp(om)^-1 d exp(om + t

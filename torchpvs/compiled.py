@@ -53,6 +53,37 @@ __all__ = ["available", "partials", "pose", "section_step", "solve", "step", "st
 # few elements is faster).
 _PARALLEL_FROM = 8
 
+# Below this imaginary part, cosh(b) rounds to 1 and sinh(b) to b in float64.
+_TINY_IMAG = 1e-9
+
+
+def cos_sin(x):
+    """``(cos x, sin x)`` of a real or complex ``x``. In compiled code a complex ``x = a + ib``
+    of the complex step (``|b| <= 1e-9``) takes two real calls, ``cos a - i b sin a`` and
+    ``sin a + i b cos a``, instead of numba's eight (``cosh b``, ``sinh b`` and both again for
+    the second function): the same values bit for bit, since ``cosh b`` rounds to 1 and
+    ``sinh b`` to ``b`` there (``tests/test_compiled.py``)."""
+    return np.cos(x), np.sin(x)
+
+
+if numba is not None:
+    from numba.extending import overload
+
+    @overload(cos_sin)
+    def _cos_sin_compiled(x):
+        if isinstance(x, numba.types.Complex):
+            def impl(x):
+                a, b = x.real, x.imag
+                if abs(b) > _TINY_IMAG:
+                    return np.cos(x), np.sin(x)
+                ca, sa = math.cos(a), math.sin(a)
+                return complex(ca, -(sa * b)), complex(sa, ca * b)
+            return impl
+
+        def impl_real(x):
+            return math.cos(x), math.sin(x)
+        return impl_real
+
 
 def available() -> bool:
     """Whether the compiled kernel can run here (numba imports)."""
@@ -1226,8 +1257,7 @@ def partials_core(q, Dc, dA, qmask, D, L, Ls, EI, GJ, coef, tau, psi0, start, h,
                 locq[j] = lq
                 ps = (psi_start[j] + 0.5 * hk * lq
                       + (horner_integral(coef, j, t) - Z0[j]) * pm[j])
-                cs[j] = np.cos(ps)
-                sn[j] = np.sin(ps)
+                cs[j], sn[j] = cos_sin(ps)
                 Rx[j] = cs[j] * us[j, 0] - sn[j] * us[j, 1]
                 Ry[j] = sn[j] * us[j, 0] + cs[j] * us[j, 1]
                 dp[j] = d1 + pm[j] * us[j, 2]
@@ -1404,8 +1434,7 @@ def magnus_twist(u, i, hs, kq, om):
 def tip_frame(g, angle, tip, R):
     """The tip position ``tip (3,)`` and the tip tube's frame ``R (3, 3)``: the backbone frame
     ``g (4, 4)`` turned by the tube's ``angle`` about its ``z``."""
-    ca = np.cos(angle)
-    sa = np.sin(angle)
+    ca, sa = cos_sin(angle)
     for i in range(3):
         tip[i] = g[i, 3]
         R[i, 0] = g[i, 0] * ca + g[i, 1] * sa
@@ -1589,8 +1618,7 @@ def tip_twist_core(q, Dc, dA, qmask, D, L, Ls, coef, tau, psi0, start, h, presen
                       + (horner_integral(coef, j, t) - Z0[j]) * curved[k, j] * presc[k])
                 usx = horner(coef, j, 0, t) * curved[k, j]
                 usy = horner(coef, j, 1, t) * curved[k, j]
-                cs = np.cos(ps)
-                sn = np.sin(ps)
+                cs, sn = cos_sin(ps)
                 ux += held * (cs * usx - sn * usy)
                 uy += held * (sn * usx + cs * usy)
             u[gg, 0] = ux
