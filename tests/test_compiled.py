@@ -602,6 +602,37 @@ def test_the_compiled_tip_partials_are_the_autograd_ones(dtype):
     assert max(worst) < (1e-11 if dtype == torch.float64 else 1e-5), max(worst)
 
 
+
+def test_the_force_contracted_tip_partials_are_the_full_ones_contracted():
+    """``compiled.tip_force_partials_q_one`` (the load rows' ``F . P_q``, contracted per Magnus
+    step) against the full ``P_q`` of ``compiled.tip_partials`` (which the test above holds to
+    autograd) contracted with the same force, on the suite's scenes, at equilibria and off
+    them: equal to round-off (1e-13 of the largest entry)."""
+    from torchpvs.kernel import _on_layout
+    rng = np.random.default_rng(3)
+    worst = []
+    for scene in (fig3(), random_scene(1), nested_scene(3, seed=1), nested_scene(4, seed=2)):
+        rot = rng.uniform(-3, 3, (4, len(scene.tubes)))
+        eq = tp.solve(scene, rotation=torch.tensor(rot), tip_force=torch.tensor([0.2, 0.1, 0.0]))
+        ctx, info = eq.context, eq.context.implicit
+        q = eq.q.detach()
+        for qq in (q, q + 0.1 * torch.from_numpy(rng.normal(size=q.shape)) * info.qmask):
+            (Pq, _, _), lay = _on_layout(compiled.tip_partials, qq, ctx.tubes, ctx.insertion,
+                                         ctx.rotation, info.loaded, info.disc, None, info.tab)
+            qa, arrays = compiled._pose_arrays(qq, lay, ctx.tubes, info.tab)
+            (qmask, D, _L, _Ls, coef, tau, psi0, start, h, present, curved, presc, _tt, xm,
+             phi, Qb) = arrays
+            for b in range(qa.shape[0]):
+                F = rng.normal(size=3)
+                g = np.empty(qa.shape[1])
+                compiled.tip_force_partials_q_one(
+                    qa[b], qmask[b], D[b], coef[b], tau[b], psi0[b], start[b], h[b],
+                    present[b], curved[b], presc[b], xm, phi, Qb, F, g)
+                ref = F @ Pq[b, :3].numpy()
+                worst.append(float(np.abs(g - ref).max() / np.abs(ref).max()))
+    assert len(worst) == 4 * 2 * 4
+    assert max(worst) < 1e-13, max(worst)
+
 def test_the_control_jacobians_are_the_same_on_both_kernels():
     """``control_jacobians`` (stiffness, tip Jacobian, tip compliance) of the same equilibria
     solved on the eager and the compiled kernel, which take the tip partials from autograd and

@@ -1759,7 +1759,7 @@ def load_rows_one(q, F, qmask, D, L, Ls, coef, tau, psi0, start, h, present, cur
     psi02 = np.empty(N)
     start2 = np.empty(S)
     h2 = np.empty(S)
-    Pq = np.empty((6, nq))
+    gq = np.empty(nq)
     Px = np.empty((6, 2 * N))
     F0, F1, F2 = F[0], F[1], F[2]
     if F0 == 0.0 and F1 == 0.0 and F2 == 0.0:     # an unloaded element of a loaded batch
@@ -1779,13 +1779,13 @@ def load_rows_one(q, F, qmask, D, L, Ls, coef, tau, psi0, start, h, present, cur
                 As[d - N] = _STENCIL[s] * step
             moved_layout(D, L, Ls, coef, tau, psi0, start, h, Ds, As, D2, tau2, psi02, start2,
                          h2)
-            tip_partials_q_one(q, qmask, D2, coef, tau2, psi02, start2, h2, present, curved,
-                               presc, tip_tube, xm, phi, Qb, Pq)
+            tip_force_partials_q_one(q, qmask, D2, coef, tau2, psi02, start2, h2, present,
+                                     curved, presc, xm, phi, Qb, F, gq)
             tip_actuator_partials(q, qmask, D, L, Ls, coef, tau, psi0, start, h, present,
                                   curved, presc, tip_tube, xm, phi, Qb, Ds, As, Px)
             c = -_WEIGHTS[s] / (12.0 * step)
             for col in range(nq):
-                Gq[d, col] += c * (F0 * Pq[0, col] + F1 * Pq[1, col] + F2 * Pq[2, col])
+                Gq[d, col] += c * gq[col]
             for col in range(2 * N):
                 X[d, col] += c * (F0 * Px[0, col] + F1 * Px[1, col] + F2 * Px[2, col])
 
@@ -1913,6 +1913,67 @@ def tip_partials_q_one(q, qmask, D, coef, tau, psi0, start, h, present, curved, 
     ``z``. The layout's fields are real here (no insertion or rotation moves): the same
     nodes and sections as :func:`tip_twist_core`."""
     N = D.shape[0]
+    nq = q.shape[0]
+    Om, dOm, dpsi, Pprev, E, P = _tip_chain_q(q, qmask, D, coef, tau, psi0, start, h, present,
+                                              curved, presc, xm, phi, Qb)
+    Pq[:, :] = 0.0
+    Pk = np.empty((4, 4))
+    r = np.empty(3)
+    zs = np.empty((6, 6))
+    Jw = np.empty((3, 3))
+    Qv = np.empty((3, 3))
+    for k in range(Om.shape[0]):
+        mat4(Pprev[k], E[k], Pk)
+        _step_sensitivity(Pk, P, Om[k], Jw, Qv, r, zs)
+        for a in range(6):
+            for c in range(nq):
+                d = dOm[k, a, c]
+                if d != 0.0:
+                    for i in range(6):
+                        Pq[i, c] += zs[a, i] * d
+    # the tip tube's angle about the last frame's z
+    for j in range(N):
+        if tip_tube[j] != 0.0:
+            for c in range(nq):
+                d = tip_tube[j] * dpsi[j, c]
+                if d != 0.0:
+                    for i in range(3):
+                        Pq[3 + i, c] += P[i, 2] * d
+
+
+@_jit
+def tip_force_partials_q_one(q, qmask, D, coef, tau, psi0, start, h, present, curved, presc,
+                             xm, phi, Qb, F, g):
+    """``g (nq,) = F . P_q[:3]``: :func:`tip_partials_q_one`'s position rows contracted with a
+    force ``F (3,)`` [N] (the gradient of the dead load's work ``F . p`` at fixed actuation,
+    what :func:`load_rows_one` differences), each step's sensitivity contracted before it meets
+    the ``nq`` coordinate derivatives (a sixth of the products; the rotation rows, the tip
+    tube's angle included, are not formed)."""
+    nq = q.shape[0]
+    Om, dOm, dpsi, Pprev, E, P = _tip_chain_q(q, qmask, D, coef, tau, psi0, start, h, present,
+                                              curved, presc, xm, phi, Qb)
+    g[:] = 0.0
+    Pk = np.empty((4, 4))
+    r = np.empty(3)
+    zs = np.empty((6, 6))
+    Jw = np.empty((3, 3))
+    Qv = np.empty((3, 3))
+    for k in range(Om.shape[0]):
+        mat4(Pprev[k], E[k], Pk)
+        _step_sensitivity(Pk, P, Om[k], Jw, Qv, r, zs)
+        for a in range(6):
+            w = F[0] * zs[a, 0] + F[1] * zs[a, 1] + F[2] * zs[a, 2]
+            for c in range(nq):
+                g[c] += w * dOm[k, a, c]
+
+
+@_jit
+def _tip_chain_q(q, qmask, D, coef, tau, psi0, start, h, present, curved, presc, xm, phi, Qb):
+    """The forward part of :func:`tip_partials_q_one`: the Magnus chain's step twists ``Om (K,
+    6)`` and their derivatives in the coordinates ``dOm (K, 6, nq)``, the angles' derivatives
+    ``dpsi (N, nq)`` at the chain's end, the frames before each step ``Pprev (K, 4, 4)``, the
+    steps' exponentials ``E (K, 4, 4)`` and the tip frame ``P (4, 4)``."""
+    N = D.shape[0]
     S = h.shape[0]
     G, n = phi.shape
     m = G // 2
@@ -2001,9 +2062,7 @@ def tip_partials_q_one(q, qmask, D, coef, tau, psi0, start, h, present, curved, 
             psi[j] += (hk * q[f] * qmask[f] + (horner_integral(coef, j, sk - tau[j] + hk)
                                                - Z0[j]) * curved[k, j] * presc[k])
             dpsi[j, f] += hk * qmask[f]
-    # the chain: frames before each step and the exponentials. An exponential's derivative in
-    # its twist is exp(Om) [J_r e_a]^ (se3_right_jacobian): with (w_a, v_a) = J_r e_a the tip
-    # moves by R (w_a x r + v_a) and turns by R w_a, R the frame after the step
+    # the chain: frames before each step and the exponentials
     Pprev = np.empty((K, 4, 4))
     E = np.empty((K, 4, 4))
     Es = np.empty((4, 4))
@@ -2014,43 +2073,33 @@ def tip_partials_q_one(q, qmask, D, coef, tau, psi0, start, h, present, curved, 
         E[k] = np.eye(4)
         exp_right_any(E[k], Om[k], 1e-6, Es, tmp)
         mat4(Pprev[k], E[k], P)
-    Pq[:, :] = 0.0
-    Pk = np.empty((4, 4))
-    r = np.empty(3)
-    z = np.empty(6)
-    Jw = np.empty((3, 3))
-    Qv = np.empty((3, 3))
-    for k in range(K):
-        mat4(Pprev[k], E[k], Pk)
-        for i in range(3):       # the tip in frame k
-            acc = 0.0
-            for l in range(3):
-                acc += Pk[l, i] * (P[l, 3] - Pk[l, 3])
-            r[i] = acc
-        se3_right_jacobian(Om[k], 1e-6, Jw, Qv)
-        for a in range(6):
-            if a < 3:
-                w0, w1, w2 = Jw[0, a], Jw[1, a], Jw[2, a]
-                v0, v1, v2 = Qv[0, a], Qv[1, a], Qv[2, a]
-            else:
-                w0, w1, w2 = 0.0, 0.0, 0.0
-                v0, v1, v2 = Jw[0, a - 3], Jw[1, a - 3], Jw[2, a - 3]
-            y0 = w1 * r[2] - w2 * r[1] + v0
-            y1 = w2 * r[0] - w0 * r[2] + v1
-            y2 = w0 * r[1] - w1 * r[0] + v2
-            for i in range(3):
-                z[i] = Pk[i, 0] * y0 + Pk[i, 1] * y1 + Pk[i, 2] * y2
-                z[3 + i] = Pk[i, 0] * w0 + Pk[i, 1] * w1 + Pk[i, 2] * w2
-            for c in range(nq):
-                d = dOm[k, a, c]
-                if d != 0.0:
-                    for i in range(6):
-                        Pq[i, c] += z[i] * d
-    # the tip tube's angle about the last frame's z
-    for j in range(N):
-        if tip_tube[j] != 0.0:
-            for c in range(nq):
-                d = tip_tube[j] * dpsi[j, c]
-                if d != 0.0:
-                    for i in range(3):
-                        Pq[3 + i, c] += P[i, 2] * d
+    return Om, dOm, dpsi, Pprev, E, P
+
+
+@_jit
+def _step_sensitivity(Pk, P, Omk, Jw, Qv, r, zs):
+    """Step ``k``'s twist sensitivities ``zs (6, 6)``: row ``a`` the tip's displacement
+    (``[:3]``) and rotation (``[3:]``) per unit of the step's twist component ``a``, ``Pk`` the
+    frame after the step, ``P`` the tip frame. An exponential's derivative in its twist is
+    exp(Om) [J_r e_a]^ (se3_right_jacobian): with ``(w_a, v_a) = J_r e_a`` the tip moves by
+    ``R (w_a x r + v_a)`` and turns by ``R w_a`` (``R`` the frame after the step, ``r`` the tip
+    in it)."""
+    for i in range(3):
+        acc = 0.0
+        for l in range(3):
+            acc += Pk[l, i] * (P[l, 3] - Pk[l, 3])
+        r[i] = acc
+    se3_right_jacobian(Omk, 1e-6, Jw, Qv)
+    for a in range(6):
+        if a < 3:
+            w0, w1, w2 = Jw[0, a], Jw[1, a], Jw[2, a]
+            v0, v1, v2 = Qv[0, a], Qv[1, a], Qv[2, a]
+        else:
+            w0, w1, w2 = 0.0, 0.0, 0.0
+            v0, v1, v2 = Jw[0, a - 3], Jw[1, a - 3], Jw[2, a - 3]
+        y0 = w1 * r[2] - w2 * r[1] + v0
+        y1 = w2 * r[0] - w0 * r[2] + v1
+        y2 = w0 * r[1] - w1 * r[0] + v2
+        for i in range(3):
+            zs[a, i] = Pk[i, 0] * y0 + Pk[i, 1] * y1 + Pk[i, 2] * y2
+            zs[a, 3 + i] = Pk[i, 0] * w0 + Pk[i, 1] * w1 + Pk[i, 2] * w2
