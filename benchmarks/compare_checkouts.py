@@ -9,9 +9,12 @@ the three-tube robot, 32 configurations (the last tube's rotation over [0, 250] 
 warm from the equilibrium 1 deg away and cold, the control step
 (``solve(...).jacobians(compliance=False)``, 8 configurations), the kernel's tip partials
 alone (``Kernel.tip_partials`` on a solve's layout, B = 1, where both trees have them) and
-B = 1024 warm; each figure the best of 5 passes, in ms per solve (per call). Printed: every
-round, then the best over rounds and the ratio old / new. A change's speed-up is measured as a
-ratio in one run, never against a figure from another day.
+B = 1024 warm; each figure the best of 5 passes, in ms per solve (per call). With ``--envs``
+also the force environment at B = 64 and the robust one (``CTRReachForceRobust-v0``: a tip
+force and perturbed tubes on every plant) at B = 16, seeded random actions, best of 5 x 8
+steps, in ms per robot-step. Printed: every round, then the best over rounds and the ratio
+old / new. A change's speed-up is measured as a ratio in one run, never against a figure from
+another day.
 """
 
 from __future__ import annotations
@@ -26,7 +29,30 @@ import time
 from pathlib import Path
 
 
-def probe() -> dict:
+def env_probe(out: dict) -> None:
+    """ms per robot-step of the force env at B = 64 and the robust env at B = 16."""
+    import numpy as np
+
+    import envs
+    for label, env_id, B in (("force env B64", "torchpvs/CTRReachForce-v0", 64),
+                             ("robust env B16", "torchpvs/CTRReachForceRobust-v0", 16)):
+        venv = envs.CTRReachVecEnv(B, **envs.env_kwargs(env_id))
+        venv.seed(0)
+        venv.reset()
+        rng = np.random.default_rng(0)
+        shape = (B, venv.action_space.shape[0])
+        for _ in range(3):
+            venv.step(rng.uniform(-1, 1, shape).astype(np.float32))
+        best = math.inf
+        for _ in range(5):
+            t = time.perf_counter()
+            for _ in range(8):
+                venv.step(rng.uniform(-1, 1, shape).astype(np.float32))
+            best = min(best, time.perf_counter() - t)
+        out[f"{label} (per robot-step)"] = best / (8 * B) * 1e3
+
+
+def probe(with_envs: bool = False) -> dict:
     import numpy as np
     import torch
     torch.set_num_threads(1)
@@ -89,17 +115,21 @@ def probe() -> dict:
                 fn()
                 best = min(best, time.perf_counter() - t)
             out[f"{name}: {key}"] = best / count * 1e3
+    if with_envs:
+        env_probe(out)
     return out
 
 
 def main() -> None:
     if len(sys.argv) > 1 and sys.argv[1] == "--probe":
-        print(json.dumps(probe()))
+        print(json.dumps(probe(with_envs="--envs" in sys.argv)))
         return
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("old")
     ap.add_argument("new")
     ap.add_argument("--rounds", type=int, default=3)
+    ap.add_argument("--envs", action="store_true",
+                    help="also the force env (B = 64) and the robust env (B = 16)")
     args = ap.parse_args()
     trees = {"old": Path(args.old).resolve(), "new": Path(args.new).resolve()}
     for tag, tree in trees.items():
@@ -110,7 +140,8 @@ def main() -> None:
         for tag, tree in trees.items():
             env = dict(os.environ, PYTHONPATH=str(tree), OMP_NUM_THREADS="1")
             res = json.loads(subprocess.run(
-                [sys.executable, __file__, "--probe"], env=env, check=True, text=True,
+                [sys.executable, __file__, "--probe"] + (["--envs"] if args.envs else []),
+                env=env, check=True, text=True,
                 capture_output=True, cwd=tree).stdout.splitlines()[-1])
             print(f"round {r + 1} {tag}: " + ", ".join(f"{k} {v:.3f}" for k, v in res.items()),
                   flush=True)

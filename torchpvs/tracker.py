@@ -120,16 +120,20 @@ def _scaled_active(H, qm):
     Equilibrium.stable and min_stiffness_eigenvalue are decided on."""
     n = H.shape[0]
     act = np.empty(n, dtype=np.int64)
+    sc = np.empty(n, dtype=H.dtype)
+    tiny = np.finfo(H.dtype).tiny
     m = 0
     for i in range(n):
         if qm[i] > 0 and abs(H[i, i]) > 0:
             act[m] = i
+            # S as Equilibrium's (torchpvs.equilibrium._scaled_stiffness): m powers, not m^2
+            sc[m] = max(abs(H[i, i]), tiny) ** -0.5
             m += 1
     A = np.empty((m, m), dtype=H.dtype)
     for a in range(m):
+        i = act[a]
         for c in range(m):
-            i, j = act[a], act[c]
-            A[a, c] = H[i, j] / math.sqrt(abs(H[i, i]) * abs(H[j, j]))
+            A[a, c] = sc[a] * H[i, act[c]] * sc[c]
     return A
 
 
