@@ -91,8 +91,9 @@ def cached_jit(**options):
 _jit = cached_jit(nogil=True)
 
 # a jet: value, gradient (6), Hessian (6 x 6 row-major, upper triangle used) in the twist
-# (wx, wy, wz, vx, vy, vz)
+# (wx, wy, wz, vx, vy, vz); its first _NG entries: value and gradient
 _NJ = 43
+_NG = 7
 
 
 @_jit
@@ -199,13 +200,15 @@ def _exp_coefficients(s):
 # never written, so a zeroed buffer keeps them zero): the exponential below needs 15 general
 # products and 9 by a single variable, instead of 36 general full ones.
 @_jit
-def _jmul_u(x, y, o):
-    """o = x y."""
+def _jmul_u(x, y, o, nj=_NJ):
+    """o = x y (its first ``nj`` entries: 7, value and gradient, or all 43)."""
     x0 = x[0]
     y0 = y[0]
     o[0] = x0 * y0
     for a in range(6):
         o[1 + a] = x0 * y[1 + a] + y0 * x[1 + a]
+    if nj <= 7:
+        return
     for a in range(6):
         xa = x[1 + a]
         ya = y[1 + a]
@@ -215,13 +218,15 @@ def _jmul_u(x, y, o):
 
 
 @_jit
-def _jmul_var(x, vi, i, o):
-    """o = x om_i, ``vi`` the value of the variable ``om_i``."""
+def _jmul_var(x, vi, i, o, nj=_NJ):
+    """o = x om_i, ``vi`` the value of the variable ``om_i`` (first ``nj`` entries)."""
     x0 = x[0]
     o[0] = x0 * vi
     for a in range(6):
         o[1 + a] = vi * x[1 + a]
     o[1 + i] += x0
+    if nj <= 7:
+        return
     for a in range(6):
         for b in range(a, 6):
             o[7 + 6 * a + b] = vi * x[7 + 6 * a + b]
@@ -232,11 +237,14 @@ def _jmul_var(x, vi, i, o):
 
 
 @_jit
-def _jfun_u(x, f0, f1, f2, o):
-    """o = f(x) for a scalar function with f(x0) = f0, f'(x0) = f1, f''(x0) = f2."""
+def _jfun_u(x, f0, f1, f2, o, nj=_NJ):
+    """o = f(x) for a scalar function with f(x0) = f0, f'(x0) = f1, f''(x0) = f2 (first
+    ``nj`` entries)."""
     o[0] = f0
     for a in range(6):
         o[1 + a] = f1 * x[1 + a]
+    if nj <= 7:
+        return
     for a in range(6):
         for b in range(a, 6):
             o[7 + 6 * a + b] = f1 * x[7 + 6 * a + b] + f2 * x[1 + a] * x[1 + b]
@@ -253,11 +261,13 @@ def _jbilinear(o, x, i, y, j, sign):
 
 
 @_jit
-def exp_jets(om, E, dE, d2E, J):
-    """``E = exp(om)`` (4 x 4, om = (omega, v)) into E, its derivatives ``dE[a] = dE/dom_a``
-    (6, 4, 4) and ``d2E[a, b]`` (6, 6, 4, 4): ``R = I + A W + B W^2``, ``t = v + B (w x v) +
-    C (w (w.v) - |w|^2 v)`` (W = [w]x), by jets; ``J`` (9, 43) zeroed scratch. The value
-    part is :func:`exp_value`'s arithmetic, operation for operation."""
+def exp_jets(om, E, dE, J):
+    """``E = exp(om)`` (4 x 4, om = (omega, v)) into E and its derivatives ``dE[a] =
+    dE/dom_a`` (6, 4, 4): ``R = I + A W + B W^2``, ``t = v + B (w x v) + C (w (w.v) - |w|^2
+    v)`` (W = [w]x), by first-order jets (value and gradient, the first 7 entries); ``J`` (9,
+    43) scratch. The value part is :func:`exp_value`'s arithmetic, operation for operation.
+    The second derivatives the work's Hessian needs, contracted with the force and the tip,
+    are :func:`exp_force_hessian`'s."""
     w0, w1, w2 = om[0], om[1], om[2]
     v0, v1, v2 = om[3], om[4], om[5]
     s, Aj, Bj, Cj, wv, t1, t2, t3, ent = J[0], J[1], J[2], J[3], J[4], J[5], J[6], J[7], J[8]
@@ -265,15 +275,13 @@ def exp_jets(om, E, dE, d2E, J):
     s[0] = w0 * w0 + w1 * w1 + w2 * w2
     for a in range(3):
         s[1 + a] = 2.0 * om[a]
-        s[7 + 7 * a] = 2.0
     a0, a1, a2, b0, b1, b2, c0, c1, c2 = _exp_coefficients(s[0])
-    _jfun_u(s, a0, a1, a2, Aj)
-    _jfun_u(s, b0, b1, b2, Bj)
-    _jfun_u(s, c0, c1, c2, Cj)
+    _jfun_u(s, a0, a1, a2, Aj, _NG)
+    _jfun_u(s, b0, b1, b2, Bj, _NG)
+    _jfun_u(s, c0, c1, c2, Cj, _NG)
     E[:, :] = 0.0
     E[3, 3] = 1.0
     dE[:, 3, :] = 0.0
-    d2E[:, :, 3, :] = 0.0
     # R = I + B (w w^T - s I) + A [w]x; [w]x: (0,1) -wz, (0,2) wy, (1,0) wz, (1,2) -wx,
     # (2,0) -wy, (2,1) wx
     for i in range(3):
@@ -282,21 +290,20 @@ def exp_jets(om, E, dE, d2E, J):
             if i == j:
                 t1[0] = om[i] * om[i] - s[0]
                 t1[1 + i] = 2.0 * om[i]
-                t1[7 + 7 * i] = 2.0
-                for c in range(1, _NJ):
+                for c in range(1, _NG):
                     t1[c] -= s[c]
             else:
                 _jbilinear(t1, om[i], i, om[j], j, 1.0)
-            _jmul_u(Bj, t1, ent)
+            _jmul_u(Bj, t1, ent, _NG)
             if i == j:
                 ent[0] += 1.0
             else:
                 k = 3 - i - j
                 sign = 1.0 if (j - i) % 3 == 2 else -1.0
-                _jmul_var(Aj, om[k], k, t2)
-                for c in range(_NJ):
+                _jmul_var(Aj, om[k], k, t2, _NG)
+                for c in range(_NG):
                     ent[c] += sign * t2[c]
-            _jet_out(ent, i, j, E, dE, d2E)
+            _jet_out(ent, i, j, E, dE)
     # t = v + B (w x v) + C (w (w.v) - s v)
     wv[:] = 0.0
     _jbilinear(wv, w0, 0, v0, 3, 1.0)
@@ -310,28 +317,104 @@ def exp_jets(om, E, dE, d2E, J):
         _jbilinear(t1, om[j], j, om[3 + k], 3 + k, 1.0)
         _jbilinear(t1, om[k], k, om[3 + j], 3 + j, -1.0)
         t1[0] = om[j] * om[3 + k] - om[k] * om[3 + j]
-        _jmul_u(Bj, t1, ent)
-        _jmul_var(wv, om[i], i, t2)                     # inner_i = w_i (w.v) - s v_i
-        _jmul_var(s, om[3 + i], 3 + i, t3)
-        for c in range(_NJ):
+        _jmul_u(Bj, t1, ent, _NG)
+        _jmul_var(wv, om[i], i, t2, _NG)                # inner_i = w_i (w.v) - s v_i
+        _jmul_var(s, om[3 + i], 3 + i, t3, _NG)
+        for c in range(_NG):
             t2[c] -= t3[c]
-        _jmul_u(Cj, t2, t3)
+        _jmul_u(Cj, t2, t3, _NG)
         ent[0] = (om[3 + i] + ent[0]) + t3[0]
-        for c in range(1, _NJ):
+        for c in range(1, _NG):
             ent[c] += t3[c]
         ent[1 + 3 + i] += 1.0
-        _jet_out(ent, i, 3, E, dE, d2E)
+        _jet_out(ent, i, 3, E, dE)
 
 
 @_jit
-def _jet_out(x, i, j, E, dE, d2E):
-    """Entry (i, j) of the exponential from its jet ``x``."""
+def exp_force_hessian(om, F, r, M, J):
+    """``M (6, 6)``: the Hessian in ``om`` of ``f(om) = F . (exp(om) [r; 1])[:3]`` (``F``,
+    ``r`` 3-vectors: a force and a point in the step's frame), what the work's Hessian takes
+    from each Magnus step. With :func:`exp_jets`' ``R = I + A W + B W^2`` and ``t``,
+
+        f = F.r + F.v + A w.(r x F) + B [(F.w)(w.r) - |w|^2 F.r + w.(v x F)]
+            + C [(F.w)(w.v) - |w|^2 F.v],
+
+    each bracket a quadratic whose jet is written out, times the jets of ``A, B, C`` (functions
+    of ``|w|^2``): three jet products instead of the 12 entries' second-order jets contracted
+    afterwards. ``J`` (9, 43) scratch."""
+    s, Aj, Bj, Cj, P, t1, f = J[0], J[1], J[2], J[3], J[4], J[5], J[6]
+    s[:] = 0.0
+    s[0] = om[0] * om[0] + om[1] * om[1] + om[2] * om[2]
+    for a in range(3):
+        s[1 + a] = 2.0 * om[a]
+        s[7 + 7 * a] = 2.0
+    a0, a1, a2, b0, b1, b2, c0, c1, c2 = _exp_coefficients(s[0])
+    _jfun_u(s, a0, a1, a2, Aj)
+    _jfun_u(s, b0, b1, b2, Bj)
+    _jfun_u(s, c0, c1, c2, Cj)
+    F0, F1, F2 = F[0], F[1], F[2]
+    u = F0 * om[0] + F1 * om[1] + F2 * om[2]                     # F.w
+    # A: w.(r x F), linear in w
+    P[:] = 0.0
+    P[1] = r[1] * F2 - r[2] * F1
+    P[2] = r[2] * F0 - r[0] * F2
+    P[3] = r[0] * F1 - r[1] * F0
+    P[0] = om[0] * P[1] + om[1] * P[2] + om[2] * P[3]
+    _jmul_u(Aj, P, f)
+    # B: (F.w)(w.r) - s F.r + w.(v x F)
+    c = om[0] * r[0] + om[1] * r[1] + om[2] * r[2]
+    Fr = F0 * r[0] + F1 * r[1] + F2 * r[2]
+    x0 = om[4] * F2 - om[5] * F1                                 # v x F
+    x1 = om[5] * F0 - om[3] * F2
+    x2 = om[3] * F1 - om[4] * F0
+    P[:] = 0.0
+    P[0] = u * c - s[0] * Fr + (om[0] * x0 + om[1] * x1 + om[2] * x2)
+    P[1] = F0 * c + r[0] * u - 2.0 * Fr * om[0] + x0
+    P[2] = F1 * c + r[1] * u - 2.0 * Fr * om[1] + x1
+    P[3] = F2 * c + r[2] * u - 2.0 * Fr * om[2] + x2
+    P[4] = F1 * om[2] - F2 * om[1]                               # F x w
+    P[5] = F2 * om[0] - F0 * om[2]
+    P[6] = F0 * om[1] - F1 * om[0]
+    for a in range(3):
+        for b in range(a, 3):
+            P[7 + 6 * a + b] = F[a] * r[b] + r[a] * F[b] - (2.0 * Fr if a == b else 0.0)
+    # d2/dw_a dv_b of w.(v x F) = eps_abj F_j
+    P[7 + 6 * 0 + 4] = F2
+    P[7 + 6 * 0 + 5] = -F1
+    P[7 + 6 * 1 + 3] = -F2
+    P[7 + 6 * 1 + 5] = F0
+    P[7 + 6 * 2 + 3] = F1
+    P[7 + 6 * 2 + 4] = -F0
+    _jmul_u(Bj, P, t1)
+    for k in range(7, _NJ):
+        f[k] += t1[k]
+    # C: (F.w)(w.v) - s F.v
+    d = om[0] * om[3] + om[1] * om[4] + om[2] * om[5]
+    Fv = F0 * om[3] + F1 * om[4] + F2 * om[5]
+    P[:] = 0.0
+    P[0] = u * d - s[0] * Fv
+    for a in range(3):
+        P[1 + a] = F[a] * d + om[3 + a] * u - 2.0 * Fv * om[a]
+        P[4 + a] = om[a] * u - s[0] * F[a]
+        for b in range(a, 3):
+            P[7 + 6 * a + b] = F[a] * om[3 + b] + om[3 + a] * F[b] - (2.0 * Fv if a == b else 0.0)
+        for b in range(3):
+            P[7 + 6 * a + 3 + b] = (F[a] * om[b] + (u if a == b else 0.0)
+                                    - 2.0 * F[b] * om[a])
+    _jmul_u(Cj, P, t1)
+    for a in range(6):
+        for b in range(a, 6):
+            k = 7 + 6 * a + b
+            M[a, b] = f[k] + t1[k]
+            M[b, a] = M[a, b]
+
+
+@_jit
+def _jet_out(x, i, j, E, dE):
+    """Entry (i, j) of the exponential and its gradient from its jet ``x``."""
     E[i, j] = x[0]
     for a in range(6):
         dE[a, i, j] = x[1 + a]
-        for b in range(a, 6):
-            d2E[a, b, i, j] = x[7 + 6 * a + b]
-            d2E[b, a, i, j] = x[7 + 6 * a + b]
 
 
 @_jit
@@ -496,11 +579,10 @@ def load_work(qc, inv, qm, psi0b, D, sec, h, presc_inc, us_held, presc_local, F,
             mat4(Pprev[k], E[k], P)
         return F[0] * P[0, 3] + F[1] * P[1, 3] + F[2] * P[2, 3]
     dE = np.empty((K, 6, 4, 4), dtype=dt)
-    d2E = np.empty((K, 6, 6, 4, 4), dtype=dt)
     J = np.zeros((9, _NJ), dtype=dt)
     for k in range(K):
         Pprev[k] = P
-        exp_jets(Om[k], E[k], dE[k], d2E[k], J)
+        exp_jets(Om[k], E[k], dE[k], J)
         mat4(Pprev[k], E[k], P)
     W = F[0] * P[0, 3] + F[1] * P[1, 3] + F[2] * P[2, 3]
     p = P[:3, 3].copy()
@@ -540,16 +622,9 @@ def load_work(qc, inv, qm, psi0b, D, sec, h, presc_inc, us_held, presc_local, F,
             for i in range(3):
                 z[k, a, i] = Rp[i, 0] * y[0] + Rp[i, 1] * y[1] + Rp[i, 2] * y[2]
                 w[k, a, i] = Rp[i, 0] * om[0] + Rp[i, 1] * om[1] + Rp[i, 2] * om[2]
-            if order >= 2:
-                for b in range(a, 6):
-                    acc = 0.0
-                    for i in range(3):
-                        yi = 0.0
-                        for l in range(4):
-                            yi += d2E[k, a, b, i, l] * r[l]
-                        acc += Floc[i] * yi
-                    MOm[k, a, b] = acc
-                    MOm[k, b, a] = acc
+
+        if order >= 2:
+            exp_force_hessian(Om[k], Floc, r, MOm[k], J)
         for a in range(6):
             ga = gOm[k, a]
             if ga != 0.0:
