@@ -12,9 +12,9 @@ alone (``Kernel.tip_partials`` on a solve's layout, B = 1, where both trees have
 B = 1024 warm; each figure the best of 5 passes, in ms per solve (per call). With ``--envs``
 also the force environment at B = 64 and the robust one (``CTRReachForceRobust-v0``: a tip
 force and perturbed tubes on every plant) at B = 16, seeded random actions, best of 5 x 8
-steps, in ms per robot-step. Printed: every round, then the best over rounds and the ratio
-old / new. A change's speed-up is measured as a ratio in one run, never against a figure from
-another day.
+steps, in ms per robot-step (``--envs-only``: those alone). Printed: every round, then the
+best over rounds and the ratio old / new. A change's speed-up is measured as a ratio in one
+run, never against a figure from another day.
 """
 
 from __future__ import annotations
@@ -52,7 +52,7 @@ def env_probe(out: dict) -> None:
         out[f"{label} (per robot-step)"] = best / (8 * B) * 1e3
 
 
-def probe(with_envs: bool = False) -> dict:
+def probe(with_envs: bool = False, solves: bool = True) -> dict:
     import numpy as np
     import torch
     torch.set_num_threads(1)
@@ -61,7 +61,7 @@ def probe(with_envs: bool = False) -> dict:
     from fast_path import bench_scene  # a sibling script: the benchmark robots
     opts = torchpvs.SolverOptions()
     out = {}
-    for name in ("fig3", "three_tube"):
+    for name in ("fig3", "three_tube") if solves else ():
         sc = bench_scene(name)
         N, n = len(sc.tubes), 32
         rot = torch.zeros(n, N, dtype=torch.float64)
@@ -122,7 +122,8 @@ def probe(with_envs: bool = False) -> dict:
 
 def main() -> None:
     if len(sys.argv) > 1 and sys.argv[1] == "--probe":
-        print(json.dumps(probe(with_envs="--envs" in sys.argv)))
+        print(json.dumps(probe(with_envs="--envs" in sys.argv or "--envs-only" in sys.argv,
+                               solves="--envs-only" not in sys.argv)))
         return
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("old")
@@ -130,6 +131,7 @@ def main() -> None:
     ap.add_argument("--rounds", type=int, default=3)
     ap.add_argument("--envs", action="store_true",
                     help="also the force env (B = 64) and the robust env (B = 16)")
+    ap.add_argument("--envs-only", action="store_true", help="the two environments alone")
     args = ap.parse_args()
     trees = {"old": Path(args.old).resolve(), "new": Path(args.new).resolve()}
     for tag, tree in trees.items():
@@ -140,7 +142,8 @@ def main() -> None:
         for tag, tree in trees.items():
             env = dict(os.environ, PYTHONPATH=str(tree), OMP_NUM_THREADS="1")
             res = json.loads(subprocess.run(
-                [sys.executable, __file__, "--probe"] + (["--envs"] if args.envs else []),
+                [sys.executable, __file__, "--probe"] + (["--envs"] if args.envs else [])
+                + (["--envs-only"] if args.envs_only else []),
                 env=env, check=True, text=True,
                 capture_output=True, cwd=tree).stdout.splitlines()[-1])
             print(f"round {r + 1} {tag}: " + ", ".join(f"{k} {v:.3f}" for k, v in res.items()),
