@@ -93,6 +93,20 @@ def bench_batched(robot: str, control: str, B: int, n_steps: int, solver: str = 
     return rate, ms, float(np.mean(substeps))
 
 
+def warmed_env(B: int, **kwargs):
+    """``(venv, rng, action shape)``: a seeded, reset ``envs.CTRReachVecEnv(B, **kwargs)``
+    after three steps of seeded random actions (the first steps' one-off costs left out)."""
+    import envs
+    venv = envs.CTRReachVecEnv(B, **kwargs)
+    venv.seed(0)
+    venv.reset()
+    rng = np.random.default_rng(0)
+    shape = (B, venv.action_space.shape[0])
+    for _ in range(3):
+        venv.step(rng.uniform(-1, 1, shape).astype(np.float32))
+    return venv, rng, shape
+
+
 # (label, module, qualified name) of the stages --breakdown reports, outermost first, for each
 # env solver (envs.plant.SOLVERS): torchpvs' solve, and the compiled warm solve
 _STEP = (("step (all)", "envs.dynamics", "RobotBatch.step_force"),
@@ -128,14 +142,7 @@ def breakdown(robot: str, B: int, n_steps: int, solver: str = "auto") -> None:
     import inspect
     import pstats
 
-    import envs
-    venv = envs.CTRReachVecEnv(B, robot=robot, solver=solver)
-    venv.seed(0)
-    venv.reset()
-    rng = np.random.default_rng(0)
-    shape = (B, venv.action_space.shape[0])
-    for _ in range(3):
-        venv.step(rng.uniform(-1, 1, shape).astype(np.float32))
+    venv, rng, shape = warmed_env(B, robot=robot, solver=solver)
     prof = cProfile.Profile()
     prof.enable()
     for _ in range(n_steps):

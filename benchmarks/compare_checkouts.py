@@ -32,17 +32,12 @@ from pathlib import Path
 def env_probe(out: dict) -> None:
     """ms per robot-step of the force env at B = 64 and the robust env at B = 16."""
     import numpy as np
+    from bench_env import warmed_env  # a sibling script
 
     import envs
     for label, env_id, B in (("force env B64", "torchpvs/CTRReachForce-v0", 64),
                              ("robust env B16", "torchpvs/CTRReachForceRobust-v0", 16)):
-        venv = envs.CTRReachVecEnv(B, **envs.env_kwargs(env_id))
-        venv.seed(0)
-        venv.reset()
-        rng = np.random.default_rng(0)
-        shape = (B, venv.action_space.shape[0])
-        for _ in range(3):
-            venv.step(rng.uniform(-1, 1, shape).astype(np.float32))
+        venv, rng, shape = warmed_env(B, **envs.env_kwargs(env_id))
         best = math.inf
         for _ in range(5):
             t = time.perf_counter()

@@ -1914,23 +1914,16 @@ def tip_partials_q_one(q, qmask, D, coef, tau, psi0, start, h, present, curved, 
     nodes and sections as :func:`tip_twist_core`."""
     N = D.shape[0]
     nq = q.shape[0]
-    Om, dOm, dpsi, Pprev, E, P = _tip_chain_q(q, qmask, D, coef, tau, psi0, start, h, present,
-                                              curved, presc, xm, phi, Qb)
+    Zs, dOm, dpsi, P = _tip_chain_q(q, qmask, D, coef, tau, psi0, start, h, present, curved,
+                                    presc, xm, phi, Qb)
     Pq[:, :] = 0.0
-    Pk = np.empty((4, 4))
-    r = np.empty(3)
-    zs = np.empty((6, 6))
-    Jw = np.empty((3, 3))
-    Qv = np.empty((3, 3))
-    for k in range(Om.shape[0]):
-        mat4(Pprev[k], E[k], Pk)
-        _step_sensitivity(Pk, P, Om[k], Jw, Qv, r, zs)
+    for k in range(Zs.shape[0]):
         for a in range(6):
             for c in range(nq):
                 d = dOm[k, a, c]
                 if d != 0.0:
                     for i in range(6):
-                        Pq[i, c] += zs[a, i] * d
+                        Pq[i, c] += Zs[k, a, i] * d
     # the tip tube's angle about the last frame's z
     for j in range(N):
         if tip_tube[j] != 0.0:
@@ -1950,29 +1943,22 @@ def tip_force_partials_q_one(q, qmask, D, coef, tau, psi0, start, h, present, cu
     the ``nq`` coordinate derivatives (a sixth of the products; the rotation rows, the tip
     tube's angle included, are not formed)."""
     nq = q.shape[0]
-    Om, dOm, dpsi, Pprev, E, P = _tip_chain_q(q, qmask, D, coef, tau, psi0, start, h, present,
-                                              curved, presc, xm, phi, Qb)
+    Zs, dOm, _, _ = _tip_chain_q(q, qmask, D, coef, tau, psi0, start, h, present, curved, presc,
+                                 xm, phi, Qb)
     g[:] = 0.0
-    Pk = np.empty((4, 4))
-    r = np.empty(3)
-    zs = np.empty((6, 6))
-    Jw = np.empty((3, 3))
-    Qv = np.empty((3, 3))
-    for k in range(Om.shape[0]):
-        mat4(Pprev[k], E[k], Pk)
-        _step_sensitivity(Pk, P, Om[k], Jw, Qv, r, zs)
+    for k in range(Zs.shape[0]):
         for a in range(6):
-            w = F[0] * zs[a, 0] + F[1] * zs[a, 1] + F[2] * zs[a, 2]
+            w = F[0] * Zs[k, a, 0] + F[1] * Zs[k, a, 1] + F[2] * Zs[k, a, 2]
             for c in range(nq):
                 g[c] += w * dOm[k, a, c]
 
 
 @_jit
 def _tip_chain_q(q, qmask, D, coef, tau, psi0, start, h, present, curved, presc, xm, phi, Qb):
-    """The forward part of :func:`tip_partials_q_one`: the Magnus chain's step twists ``Om (K,
-    6)`` and their derivatives in the coordinates ``dOm (K, 6, nq)``, the angles' derivatives
-    ``dpsi (N, nq)`` at the chain's end, the frames before each step ``Pprev (K, 4, 4)``, the
-    steps' exponentials ``E (K, 4, 4)`` and the tip frame ``P (4, 4)``."""
+    """The Magnus chain of :func:`tip_partials_q_one`: ``(Zs, dOm, dpsi, P)``, each step's
+    twist sensitivities ``Zs (K, 6, 6)`` (:func:`_step_sensitivity`), the step twists'
+    derivatives in the coordinates ``dOm (K, 6, nq)``, the angles' derivatives ``dpsi (N,
+    nq)`` at the chain's end and the tip frame ``P (4, 4)``."""
     N = D.shape[0]
     S = h.shape[0]
     G, n = phi.shape
@@ -2073,7 +2059,15 @@ def _tip_chain_q(q, qmask, D, coef, tau, psi0, start, h, present, curved, presc,
         E[k] = np.eye(4)
         exp_right_any(E[k], Om[k], 1e-6, Es, tmp)
         mat4(Pprev[k], E[k], P)
-    return Om, dOm, dpsi, Pprev, E, P
+    Zs = np.empty((K, 6, 6))
+    Pk = np.empty((4, 4))
+    r = np.empty(3)
+    Jw = np.empty((3, 3))
+    Qv = np.empty((3, 3))
+    for k in range(K):
+        mat4(Pprev[k], E[k], Pk)
+        _step_sensitivity(Pk, P, Om[k], Jw, Qv, r, Zs[k])
+    return Zs, dOm, dpsi, P
 
 
 @_jit
