@@ -9,7 +9,9 @@ the three-tube robot, 32 configurations (the last tube's rotation over [0, 250] 
 warm from the equilibrium 1 deg away and cold, the control step
 (``solve(...).jacobians(compliance=False)``, 8 configurations), the kernel's tip partials
 alone (``Kernel.tip_partials`` on a solve's layout, B = 1, where both trees have them) and
-B = 1024 warm; each figure the best of 5 passes, in ms per solve (per call). With ``--envs``
+B = 1024 warm; each figure the best of 5 passes, in ms per solve (per call). ``--loaded``
+adds the same cases for ``fig3_loaded``, the Fig. 3 robot under a dead tip force of 0.3 N
+(``benchmarks/compiled_kernel.py``'s, the most a robust plant carries). With ``--envs``
 also the force environment at B = 64 and the robust one (``CTRReachForceRobust-v0``: a tip
 force and perturbed tubes on every plant) at B = 16, seeded random actions, best of 5 x 8
 steps, in ms per robot-step (``--envs-only``: those alone). Printed: every round, then the
@@ -47,7 +49,7 @@ def env_probe(out: dict) -> None:
         out[f"{label} (per robot-step)"] = best / (8 * B) * 1e3
 
 
-def probe(with_envs: bool = False, solves: bool = True) -> dict:
+def probe(with_envs: bool = False, solves: bool = True, loaded: bool = False) -> dict:
     import numpy as np
     import torch
     torch.set_num_threads(1)
@@ -56,8 +58,10 @@ def probe(with_envs: bool = False, solves: bool = True) -> dict:
     from fast_path import bench_scene  # a sibling script: the benchmark robots
     opts = torchpvs.SolverOptions()
     out = {}
-    for name in ("fig3", "three_tube") if solves else ():
-        sc = bench_scene(name)
+    names = ("fig3", "three_tube") + (("fig3_loaded",) if loaded else ())
+    for name in names if solves else ():
+        sc = (bench_scene("fig3").with_load(tip_force=[0.2, -0.2, 0.1]) if name == "fig3_loaded"
+              else bench_scene(name))
         N, n = len(sc.tubes), 32
         rot = torch.zeros(n, N, dtype=torch.float64)
         rot[:, -1] = torch.tensor(np.radians(np.linspace(0, 250, n)))
@@ -118,7 +122,8 @@ def probe(with_envs: bool = False, solves: bool = True) -> dict:
 def main() -> None:
     if len(sys.argv) > 1 and sys.argv[1] == "--probe":
         print(json.dumps(probe(with_envs="--envs" in sys.argv or "--envs-only" in sys.argv,
-                               solves="--envs-only" not in sys.argv)))
+                               solves="--envs-only" not in sys.argv,
+                               loaded="--loaded" in sys.argv)))
         return
     ap = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     ap.add_argument("old")
@@ -127,6 +132,8 @@ def main() -> None:
     ap.add_argument("--envs", action="store_true",
                     help="also the force env (B = 64) and the robust env (B = 16)")
     ap.add_argument("--envs-only", action="store_true", help="the two environments alone")
+    ap.add_argument("--loaded", action="store_true",
+                    help="also the Fig. 3 robot under a 0.3 N dead tip force (fig3_loaded)")
     args = ap.parse_args()
     trees = {"old": Path(args.old).resolve(), "new": Path(args.new).resolve()}
     for tag, tree in trees.items():
@@ -138,7 +145,8 @@ def main() -> None:
             env = dict(os.environ, PYTHONPATH=str(tree), OMP_NUM_THREADS="1")
             res = json.loads(subprocess.run(
                 [sys.executable, __file__, "--probe"] + (["--envs"] if args.envs else [])
-                + (["--envs-only"] if args.envs_only else []),
+                + (["--envs-only"] if args.envs_only else [])
+                + (["--loaded"] if args.loaded else []),
                 env=env, check=True, text=True,
                 capture_output=True, cwd=tree).stdout.splitlines()[-1])
             print(f"round {r + 1} {tag}: " + ", ".join(f"{k} {v:.3f}" for k, v in res.items()),
