@@ -985,6 +985,8 @@ class Tracker:
             return run(0, k)
         cuts = np.linspace(0, k, T + 1).astype(int)
         if self._pool is None or self._pool_size < T:
+            if self._pool is not None:      # a larger pool replaces it: release its threads
+                self._pool.shutdown(wait=False)
             self._pool = ThreadPoolExecutor(max_workers=T, thread_name_prefix="tracker")
             self._pool_size = T
         parts = list(self._pool.map(run, cuts[:-1], cuts[1:]))
