@@ -23,9 +23,10 @@ solver) and the ratio, measured side by side on the same actions.
 ``--breakdown`` instead splits one batched force-env step (``CTRReachVecEnv``, the largest of
 ``--batches``) into its stages, from a ``cProfile`` of ``--steps`` steps: the solves, the
 actuator stiffness (for the linearly implicit step and the substep count), the stability
-margin, and within the solves the layout, the maps, the compiled Newton and pose calls and the
-forces. The profiler's per-call cost inflates the Python-heavy stages, so read the shares, not
-the absolute times (which the table mode gives without a profiler)::
+margin, and within the solves the fused path (torchpvs/fused.py), the layout, the maps, the
+compiled Newton and pose calls and the forces (the last ones where the fused path declines).
+The profiler's per-call cost inflates the Python-heavy stages, so read the shares, not the
+absolute times (which the table mode gives without a profiler)::
 
     python benchmarks/bench_env.py --breakdown --batches 64 --steps 30
 """
@@ -115,6 +116,7 @@ _ENV = (("  substep count", "envs.dynamics", "RobotBatch.n_substeps"),
         ("  contact", "envs.dynamics", "RobotBatch._contact"))
 _STAGES = {
     "torch": _STEP + (
+        ("    fused path (two compiled calls)", "torchpvs.fused", "fused_solve"),
         ("    layout + maps, compiled", "torchpvs.compiled_layout", "layout_and_maps"),
         ("    layout (eager build_layout)", "torchpvs.sections", "build_layout"),
         ("    maps (eager build_maps)", "torchpvs.mechanics", "build_maps"),

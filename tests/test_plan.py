@@ -68,7 +68,12 @@ def test_tube_rows_equal_in_value_reuse_the_layout_and_others_do_not(monkeypatch
     import torchpvs.compiled_layout as compiled_layout
     import torchpvs.mechanics as mechanics
     import torchpvs.plan as plan_mod
+    import torchpvs.solver as solver_mod
     from torchpvs.sections import tube_rows
+
+    # the driver's rounds (the fused path, torchpvs.fused, takes the kink sides in compiled
+    # code and keeps no layout of them)
+    monkeypatch.setattr(solver_mod, "fused_solve", lambda *a, **k: None)
 
     scene = tp.load_scene("renda2021_fig3")
     built = []
@@ -130,7 +135,11 @@ def test_rows_of_a_kept_layout_are_the_layout_built_afresh(monkeypatch):
     returns that row of the kept layout: every field equals ``build_layout`` there, and the
     control step builds no layout of its own. Rows that no kept layout holds get None."""
     import torchpvs.jacobians as jac_mod
+    import torchpvs.solver as solver_mod
     from torchpvs.sections import build_layout
+
+    # the driver's rounds (the fused path keeps no layout of the kink sides)
+    monkeypatch.setattr(solver_mod, "fused_solve", lambda *a, **k: None)
     sc = tp.load_scene("renda2021_fig3")
     eq0 = tp.solve(sc)
     eq = tp.solve(sc, rotation=[0.0, 1.0], initial=eq0)

@@ -444,14 +444,20 @@ def test_newton_tolerance_follows_the_accuracy():
         assert bool((err < min(acc / 100, 1e-10)).all()), (acc, err)
 
 
-def test_energy_output_is_the_energy_at_the_returned_coordinates():
+@pytest.mark.parametrize("fused", [False, True], ids=["rounds", "fused"])
+def test_energy_output_is_the_energy_at_the_returned_coordinates(monkeypatch, fused):
     """``Equilibrium.energy`` comes from the kernel's last evaluation where it made one (no tip
-    load, method "minimize") and is recomputed otherwise; either way it is, bit for bit, the
-    elastic energy evaluated afresh at the returned coordinates (mechanics.elastic_energy_maps
-    on the same layout). Cold, warm (one iteration) and "root" solves."""
+    load, method "minimize") and is recomputed otherwise; through the driver's rounds it is,
+    bit for bit, the elastic energy evaluated afresh at the returned coordinates
+    (mechanics.elastic_energy_maps on the same layout); through the fused path
+    (torchpvs/fused.py) it is the compiled kernel's sum of the same terms, equal to round-off
+    (1e-14 relative). Cold, warm (one iteration) and "root" solves."""
+    import torchpvs.solver as solver_mod
     from torchpvs.mechanics import compact_q, elastic_energy_maps
     from torchpvs.plan import plan_for
 
+    if not fused:
+        monkeypatch.setattr(solver_mod, "fused_solve", lambda *a, **k: None)
     sc = tp.load_scene("renda2021_fig3")
     # (rotations in (-pi, pi): the layout below is built from them as given)
     rot = torch.tensor([[0.0, a] for a in (0.3, 1.7, 3.0, -2.0)], dtype=torch.float64)
@@ -471,4 +477,7 @@ def test_energy_output_is_the_energy_at_the_returned_coordinates():
             _, maps = plan.layout(plan.tubes, D, r, zero, zero,
                                   torch.zeros(B, dtype=torch.bool), disc, eq.q.shape[-1])
             fresh = elastic_energy_maps(compact_q(eq.q, maps.cidx), maps)
-        assert torch.equal(eq.energy, fresh), (eq.energy - fresh)
+        if fused:
+            assert torch.allclose(eq.energy, fresh, rtol=1e-14, atol=0), (eq.energy - fresh)
+        else:
+            assert torch.equal(eq.energy, fresh), (eq.energy - fresh)

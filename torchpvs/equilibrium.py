@@ -26,6 +26,7 @@ from .mechanics import (
 from .newton import stability_threshold
 
 if TYPE_CHECKING:
+    from .fused import FusedSolve
     from .implicit import DifferentiableOutputs, ImplicitContext
     from .options import SolverOptions
     from .order_control import SolveState
@@ -270,22 +271,27 @@ class Equilibrium:
     @classmethod
     def from_solution(cls, scene, tubes, res: SolveState, opts, elapsed: float,
                       diff: DifferentiableOutputs | None = None, plan=None,
-                      resolver: Resolver | None = None) -> Equilibrium:
+                      resolver: Resolver | None = None,
+                      outputs: FusedSolve | None = None) -> Equilibrium:
         """The solver's constructor: outputs of a converged solve ``res``
         (:class:`~torchpvs.order_control.SolveState`; ``diff``: the same outputs as
         differentiable functions of the inputs, when a gradient is wanted). Re-solves are
         handed in by the solver as a :class:`Resolver`, so that this module never imports
-        it (kept as ``context.resolver``)."""
+        it (kept as ``context.resolver``). ``outputs``: the forces and relative rotations
+        where the fused path (:mod:`torchpvs.fused`) computed them already."""
         q, lay, tab = res.q, res.lay, res.tab
         B = q.shape[0]
         qmask = lay.qmask
         with torch.no_grad():
             # Tube angles at the outer tube's end: no node math needed (the prescribed sections'
             # twist is a constant of the layout, kept with the maps).
-            w, _, c = split_q(q, lay)
-            psi0, inc = angle_offsets(w, c, lay, res.maps.presc_inc)
-            psi_l1 = psi0 + (inc * lay.before_l1[..., None]).sum(-2)
-            rel = _wrap(psi_l1[:, 1:] - psi_l1[:, :1])
+            if outputs is not None:
+                rel = outputs.rel
+            else:
+                w, _, c = split_q(q, lay)
+                psi0, inc = angle_offsets(w, c, lay, res.maps.presc_inc)
+                psi_l1 = psi0 + (inc * lay.before_l1[..., None]).sum(-2)
+                rel = _wrap(psi_l1[:, 1:] - psi_l1[:, :1])
             # Stability on the nondimensional stiffness (see min_stiffness_eigenvalue): positive
             # definite beyond a threshold set by the precision alone. The kernel's saddle test
             # factored exactly that at convergence (its verdict); one Cholesky for the elements
@@ -293,15 +299,18 @@ class Equilibrium:
             verdict = res.verdict
             if verdict is None:
                 verdict = torch.full((B,), -1, dtype=torch.int8, device=q.device)
-            stable = verdict == 1
-            todo = (verdict < 0).nonzero().flatten()
-            if todo.numel():
+            if outputs is not None:
+                stable, todo = outputs.stable, ()
+            else:
+                stable = verdict == 1
+                todo = (verdict < 0).nonzero().flatten()
+            if len(todo):
                 # (on the kernel's compact coordinates: the padding ones carry no stiffness)
                 Hs, active = _scaled_stiffness(res.Hc[todo], res.maps.qmask[todo])
                 tau = stability_threshold(Hs.dtype)
                 stable[todo] = torch.linalg.cholesky_ex(
                     Hs - tau * torch.diag_embed(active))[1] == 0
-            dofs = qmask.sum(-1).long()
+            dofs = qmask.sum(-1).long() if outputs is None else outputs.dofs
             # the kernel's last evaluation at q made it already (bit for bit), where it did
             energy = res.energy
             if energy is None or not bool(torch.isfinite(energy).all()):
@@ -315,7 +324,9 @@ class Equilibrium:
             state = ForceState(q=q, D=res.D, alpha=res.alpha, F=res.F, M=res.M,
                                loaded=res.loaded, lay=lay, tab=tab, disc=res.disc,
                                with_load=res.with_load, has_moment=res.has_moment)
-        if paper:
+        if outputs is not None and outputs.forces is not None:
+            forces, torques, insert_side, kink = outputs.forces
+        elif paper:
             forces, torques = paper_actuation(tubes, state)
             insert_side = forces.clone()
         elif opts.compute_forces:

@@ -29,7 +29,7 @@ from .sections import Discretization, Layout, Tables, build_layout, tube_rows
 
 __all__ = ["KINK_DELTA", "KINK_TOL", "ForceState", "closed_form_partials", "envelope_forces",
            "envelope_forces_autograd", "envelope_forces_closed_form", "equilibrium_forces",
-           "actuation_rows", "kink_mask", "paper_actuation", "paper_scope_check"]
+           "actuation_rows", "kink_mask", "kink_plan", "paper_actuation", "paper_scope_check"]
 
 
 class ForceState(NamedTuple):
@@ -393,7 +393,7 @@ def _coinciding_cuts(L, Ls, D, curved, tol: float) -> torch.Tensor:
 
 
 class KinkPlan(NamedTuple):
-    """Where ``U*(D)`` has a kink and the one-sided states to evaluate (:func:`_kink_plan`):
+    """Where ``U*(D)`` has a kink and the one-sided states to evaluate (:func:`kink_plan`):
     ``kink``, ``blocked`` ``(B, N)`` masks; for the kinks, batch rows and tubes ``rows_b``,
     ``rows_j``, the rows of the one-sided states ``sel`` (every kink's retraction side, then the
     insertion sides that can move) with their tube ``sj`` and insertions ``Dn``. ``sel`` is
@@ -427,7 +427,7 @@ def kink_mask(tubes, D: torch.Tensor, tol: float = KINK_TOL) -> torch.Tensor:
         | ((L - D).abs() <= tol) | _coinciding_cuts(L, Ls, D, curved, tol)
 
 
-def _kink_plan(tubes, D: torch.Tensor, delta: float, tol: float) -> KinkPlan:
+def kink_plan(tubes, D: torch.Tensor, delta: float, tol: float) -> KinkPlan:
     """:class:`KinkPlan` of insertions ``D (B, N)``: it depends on the insertions and the tubes
     only, so a solve that keeps them reuses it (``equilibrium_forces(cache=...)``)."""
     kink = kink_mask(tubes, D, tol)
@@ -464,7 +464,7 @@ def equilibrium_forces(tubes, res: ForceState, resolve, delta: float = KINK_DELT
     through ONE envelope-theorem evaluation (in closed form without tip load, else one reverse
     pass).
 
-    ``cache(key, compute)``: where given, the kink analysis (:func:`_kink_plan`) is kept with
+    ``cache(key, compute)``: where given, the kink analysis (:func:`kink_plan`) is kept with
     the solve's layout (``torchpvs.plan.Plan.cached``) and reused while the insertions are.
     ``partials``, ``tip_partials``: the kernel's closed form and tip partials
     (:func:`envelope_forces`).
@@ -476,7 +476,7 @@ def equilibrium_forces(tubes, res: ForceState, resolve, delta: float = KINK_DELT
     B = D.shape[0]
 
     def analyse():
-        return _kink_plan(tubes, D, delta, tol)
+        return kink_plan(tubes, D, delta, tol)
 
     kp = analyse() if cache is None else cache(("kinks", delta, tol), analyse)
     kink, blocked = kp.kink.clone(), kp.blocked      # the cached mask is not handed out

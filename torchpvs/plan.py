@@ -72,6 +72,7 @@ class Plan:
 
     tubes: TubeTensors
     _memo: dict = field(default_factory=dict, repr=False)
+    _static: dict = field(default_factory=dict, repr=False)
 
     def layout(self, tubes: TubeTensors, D, A, F, M, loaded, disc: Discretization,
                nq: int, build=build_layout_and_maps) -> tuple[Layout, Maps]:
@@ -126,6 +127,16 @@ class Plan:
             return type(memo.lay)._make(t[idx] for t in memo.lay)._replace(
                 psi0=memo.psi0_guide[idx] + A, alpha=A, force=zero, moment=zero)
         return None
+
+    def static(self, key: Hashable, compute):
+        """``compute()`` kept under ``key`` for the plan's life: values that depend on the
+        robot and ``key`` only (e.g. the tube arrays of a batch size that the fused path hands
+        to compiled code); the 8 most recent keys."""
+        if key not in self._static:
+            self._static[key] = compute()
+            if len(self._static) > 8:
+                self._static.pop(next(iter(self._static)))
+        return self._static[key]
 
     def cached(self, disc: Discretization, lay, key: Hashable, compute):
         """``compute()`` for a layout ``lay`` that :meth:`layout` returned for ``disc``, kept

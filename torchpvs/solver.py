@@ -19,6 +19,7 @@ import torch
 
 from .equilibrium import Equilibrium
 from .forces import ForceState, paper_scope_check
+from .fused import fused_solve
 from .implicit import ImplicitContext, differentiable_outputs
 from .inputs import scene_inputs
 from .kernel import KERNELS
@@ -93,6 +94,61 @@ def solve_tensors(scene: Scene, tubes: TubeTensors, D, A, F, M, opts: SolverOpti
     D, A, F, M = (t.detach().clone() for t in (D, A, F, M))
     if needs_grad:
         tubes = tubes.map(torch.Tensor.detach)
+    # The common case (warm or cold, no load, every check passing at the first order) in two
+    # compiled calls (torchpvs.fused); None where it does not apply: the rounds below.
+    fused = None if needs_grad else fused_solve(scene, tubes, D, A, F, M, opts, initial,
+                                                plan)
+    if fused is not None:
+        res = fused.res
+    else:
+        res = _rounds(scene, tubes, D, A, F, M, opts, initial, plan, needs_grad)
+    diff = None
+    # The Hessian is kept on the kernel's compact coordinates (implicit.full_hessian pads it).
+    info = ImplicitContext(
+        qmask=res.lay.qmask, loaded=res.loaded, disc=res.disc, tab=res.tab,
+        with_load=res.with_load, has_moment=res.has_moment, ridge=opts.backward_ridge,
+        singular_tol=opts.singular_tol, Hc=res.Hc, cidx=res.maps.cidx, qmask_c=res.maps.qmask)
+    res.implicit_info = info
+    if needs_grad:
+        diff = differentiable_outputs(res.q, info, D_in, A_in, F_in, M_in, tubes_in)
+    elapsed = time.perf_counter() - t0
+
+    resolver = SolutionResolver(scene, tubes, D, A, F, M, res, opts, plan)
+    # (the fused path's few outputs are built outside inference mode: nothing to release
+    # unless its layout came from a plan entry the rounds made in inference mode)
+    with torch.inference_mode(not needs_grad and fused is None):
+        eq = Equilibrium.from_solution(scene, tubes, res, opts, elapsed, diff, plan, resolver,
+                                       outputs=fused)
+    if not needs_grad and (fused is None or res.lay.qmask.is_inference()
+                           or res.maps.cidx.is_inference()):
+        eq = eq.released()
+    if opts.order is None and opts.on_failure != "ignore":
+        short = eq.converged & ~eq.accuracy_met
+        if bool(short.any()):
+            b = int(short.nonzero()[0])
+            warnings.warn(
+                f"torchpvs.solve: requested accuracy {opts.accuracy:g} m not reached for "
+                f"{int(short.sum())} of {B} element(s) (first: element {b}, error estimate "
+                f"{float(eq.error_estimate[b]):.3g} m at order {eq.order} "
+                f"(max_order={opts.max_order}), {res.disc.n_magnus} Magnus steps); see "
+                f"Equilibrium.accuracy_met", AccuracyWarning, stacklevel=2)
+    if opts.on_failure != "ignore":
+        n_failed = int((~eq.converged).sum())
+        if n_failed:
+            first = int((~eq.converged).nonzero()[0])
+            msg = (f"torchpvs.solve: {n_failed} of {B} element(s) did not converge "
+                   f"(first: element {first}: {eq.reason[first]})")
+            if opts.on_failure == "raise":
+                raise SolverError(msg)
+            warnings.warn(msg, RuntimeWarning, stacklevel=2)
+    return eq
+
+
+def _rounds(scene, tubes, D, A, F, M, opts: SolverOptions, initial, plan: Plan,
+            needs_grad: bool):
+    """The driver's rounds: predictor, Newton, the order check, the load ramp, the Magnus
+    check; the final :class:`~torchpvs.order_control.SolveState` with its work flags."""
+    B = D.shape[0]
     # Without a gradient to carry, the solve runs in inference mode (no autograd bookkeeping:
     # ~20% less time per torch op, which bounds small batches); what it returns is released
     # to ordinary tensors (Equilibrium.released).
@@ -140,42 +196,7 @@ def solve_tensors(scene: Scene, tubes: TubeTensors, D, A, F, M, opts: SolverOpti
             res = refine_magnus(scene, tubes, D, A, F, M, res, opts, plan, work)
     res.work_exhausted = work.exhausted
     res.timed_out = work.timed_out
-    diff = None
-    # The Hessian is kept on the kernel's compact coordinates (implicit.full_hessian pads it).
-    info = ImplicitContext(
-        qmask=res.lay.qmask, loaded=res.loaded, disc=res.disc, tab=res.tab,
-        with_load=res.with_load, has_moment=res.has_moment, ridge=opts.backward_ridge,
-        singular_tol=opts.singular_tol, Hc=res.Hc, cidx=res.maps.cidx, qmask_c=res.maps.qmask)
-    res.implicit_info = info
-    if needs_grad:
-        diff = differentiable_outputs(res.q, info, D_in, A_in, F_in, M_in, tubes_in)
-    elapsed = time.perf_counter() - t0
-
-    resolver = SolutionResolver(scene, tubes, D, A, F, M, res, opts, plan)
-    with torch.inference_mode(not needs_grad):
-        eq = Equilibrium.from_solution(scene, tubes, res, opts, elapsed, diff, plan, resolver)
-    if not needs_grad:
-        eq = eq.released()
-    if opts.order is None and opts.on_failure != "ignore":
-        short = eq.converged & ~eq.accuracy_met
-        if bool(short.any()):
-            b = int(short.nonzero()[0])
-            warnings.warn(
-                f"torchpvs.solve: requested accuracy {opts.accuracy:g} m not reached for "
-                f"{int(short.sum())} of {B} element(s) (first: element {b}, error estimate "
-                f"{float(eq.error_estimate[b]):.3g} m at order {eq.order} "
-                f"(max_order={opts.max_order}), {res.disc.n_magnus} Magnus steps); see "
-                f"Equilibrium.accuracy_met", AccuracyWarning, stacklevel=2)
-    if opts.on_failure != "ignore":
-        n_failed = int((~eq.converged).sum())
-        if n_failed:
-            first = int((~eq.converged).nonzero()[0])
-            msg = (f"torchpvs.solve: {n_failed} of {B} element(s) did not converge "
-                   f"(first: element {first}: {eq.reason[first]})")
-            if opts.on_failure == "raise":
-                raise SolverError(msg)
-            warnings.warn(msg, RuntimeWarning, stacklevel=2)
-    return eq
+    return res
 
 
 # The per-element fields of a SolveState that a load ramp's rows replace.

@@ -66,7 +66,7 @@ from .predictor import PREDICTOR_TRUST
 from .scene import Scene, load_scene
 from .sections import n_coordinates
 
-__all__ = ["Tracker", "TrackState"]
+__all__ = ["Tracker", "TrackState", "layout_and_track"]
 
 
 @dataclass(frozen=True)
@@ -588,7 +588,7 @@ def _no_rows(b, J, K):
 
 
 @cached_jit(nogil=True)
-def _layout_and_track(EI, GJ, L, Ls, coef, D, A, unloaded, xg, wg, xq, wq, xm, n, q_prev,
+def layout_and_track(EI, GJ, L, Ls, coef, D, A, unloaded, xg, wg, xq, wq, xm, n, q_prev,
                       H_prev, cidx_prev, qmc_prev, predict, dA, length, trust, phi, Qb, phi_m,
                       Q_m, small, consts, minimize, max_iter, tau, tip, R, res, it, conv,
                       verdict, jac, D_side, side, J, K, want_forces, tau_D, tau_A, sel, sj, Dn,
@@ -1033,7 +1033,7 @@ class Tracker:
             sel, sj, Dn = self._no_sel, self._no_sel, self._no_Dn
             tD, tA, vals = self._no_tau, self._no_tau, self._no_vals
         tubes, unloaded = self._tube_args_for(B)
-        q, H, cidx, qmask_c = _layout_and_track(
+        q, H, cidx, qmask_c = layout_and_track(
             *tubes, D, A, unloaded, xg, wg, xq, wq, xm, self._n,
             *prev, predict, dA, self._length, PREDICTOR_TRUST, self._phi, self._Qb,
             self._phi_m, self._Q_m, 1e-6, self._consts, self.options.method == "minimize",

@@ -22,7 +22,7 @@ def _bench():
 
 @pytest.mark.filterwarnings("ignore::RuntimeWarning")
 @pytest.mark.parametrize("solver, stages", [
-    ("torch", ("solves", "layout + maps, compiled", "compiled Newton", "actuator stiffness",
+    ("torch", ("solves", "fused path (two compiled calls)", "actuator stiffness",
                "stability margin", "substep count")),
     ("auto", ("solves", "one compiled call each", "actuator stiffness (its rows)",
               "substep count")),
