@@ -130,8 +130,9 @@ def test_options_equal_the_rounds(monkeypatch, opts):
 
 def test_declines_where_the_rounds_go_further():
     """The fused path returns None (the driver's rounds then solve) where its one round is not
-    final: an accuracy that needs a higher order, a tip load, a warm start of another order,
-    float32; and takes the default warm case (the spy would otherwise never see it taken)."""
+    final (an accuracy that needs a higher order) or where it does not apply (a tip load, a
+    warm start of another order, the eager kernel, the paper's force model, a batch above
+    MAX_BATCH); it takes the default case."""
     sc = tp.load_scene("renda2021_fig3")
     tubes = plan_for(sc, torch.float64, torch.device("cpu")).tubes
     plan = Plan(tubes)
@@ -151,6 +152,10 @@ def test_declines_where_the_rounds_go_further():
     assert run(initial=eq3) is not None                            # continues at its order
     assert run(tp.SolverOptions(kernel="newton")) is None
     assert run(tp.SolverOptions(force_model="paper")) is None
+    big = fused_mod.MAX_BATCH + 1                                   # the rounds are faster
+    assert fused_mod.fused_solve(sc, tubes, D.expand(big, 2).clone(), A.expand(big, 2).clone(),
+                                 Z.expand(big, 3).clone(), Z.expand(big, 3).clone(),
+                                 tp.SolverOptions(), None, plan) is None
 
 
 def test_fused_result_supports_gradients_jacobians_and_warm_starts(monkeypatch):

@@ -20,10 +20,11 @@ call never depend on which path ran. What the fused path returns is the driver's
 :class:`~torchpvs.order_control.SolveState` and outputs, computed by the same compiled
 element functions from the same inputs (``tests/test_fused.py`` compares the two paths).
 
-Where it applies: CPU float64 tensors without gradient, numba importable, no tip load or load
-coordinates, ``kernel="compiled"``, the energy-consistent forces, a warm start (if any) of the
-solve's own basis order; with a fixed ``order`` or ``n_magnus`` the corresponding check is
-skipped exactly as the driver skips it.
+Where it applies: batches of up to :data:`MAX_BATCH` (above, the rounds' batched stages and the
+layouts they keep between calls are faster), CPU float64 tensors without gradient, numba
+importable, no tip load or load coordinates, ``kernel="compiled"``, the energy-consistent
+forces, a warm start (if any) of the solve's own basis order; with a fixed ``order`` or
+``n_magnus`` the corresponding check is skipped exactly as the driver skips it.
 """
 
 from __future__ import annotations
@@ -53,7 +54,7 @@ from .scene import Scene
 from .sections import Discretization, TubeTensors, n_coordinates
 from .tracker import layout_and_track
 
-__all__ = ["FusedSolve", "fused_solve"]
+__all__ = ["MAX_BATCH", "FusedSolve", "fused_solve"]
 
 
 class FusedSolve(NamedTuple):
@@ -171,9 +172,19 @@ def _discretization(opts: SolverOptions, order: int, n_magnus: int) -> Discretiz
     return replace(opts.discretization(order), n_magnus=n_magnus)
 
 
+#: The largest batch the fused path takes. It rebuilds every layout it needs in compiled code
+#: on each call (the order check's, the half-step pose's, each kink side's), where the rounds
+#: keep them between calls at the same insertions (torchpvs.plan) and batch each stage over
+#: the rows. Measured on the Fig. 3 robot at its kink, warm 1 deg steps, one thread
+#: (docs/performance.md): fused / rounds per solve 0.30x at B = 1, 0.41x at 4, 0.63x at 16,
+#: 0.94x at 64, 1.17x at 256.
+MAX_BATCH = 32
+
+
 def _applies(D, F, M, opts: SolverOptions) -> bool:
     B = D.shape[0]
-    return (compiled.available() and opts.kernel == "compiled" and D.device.type == "cpu"
+    return (B <= MAX_BATCH and compiled.available() and opts.kernel == "compiled"
+            and D.device.type == "cpu"
             and D.dtype == torch.float64 and not opts.load_coordinates
             and (not opts.compute_forces or opts.force_model == "energy")
             and opts.max_total_iter > opts.max_iter
