@@ -183,3 +183,46 @@ def test_fused_result_supports_gradients_jacobians_and_warm_starts(monkeypatch):
     assert not called
     eq.tip_position.sum().backward()
     assert torch.isfinite(rot.grad).all() and float(rot.grad.abs().max()) > 0
+
+
+@pytest.mark.parametrize("case", ["fig3_kink", "fig3_off_kink", "random1", "random4"])
+def test_compiled_control_blocks_equal_the_torch_closed_forms(case):
+    """``Equilibrium.jacobians`` takes its actuator stiffness and tip Jacobian from one compiled
+    call (fused.control_blocks through the solve's resolver) where it applies; they equal the
+    torch closed forms of torchpvs/jacobians.py (``_one_sided`` with ``_control_blocks_here``,
+    one-sided at kinks) on the same equilibrium, to 1e-9 of each block's scale, and finite
+    differences of solves confirm the tip Jacobian's rotation columns (smooth there)."""
+    from torchpvs import jacobians as jac_mod
+    if case.startswith("fig3"):
+        sc = tp.load_scene("renda2021_fig3")
+        D = torch.tensor([sc.actuation.insertion], dtype=torch.float64)
+        if case == "fig3_off_kink":
+            D = D + torch.tensor([[2e-3, 2e-3]], dtype=torch.float64)
+        A = torch.tensor([[0.0, 0.7], [0.3, -1.2]], dtype=torch.float64)
+        D = D.expand(2, 2).clone()
+    else:
+        sc = random_scene(int(case[-1]))
+        D, A = feasible_actuations(np.random.default_rng(5), 3, sc)
+        D, A = torch.from_numpy(D), torch.from_numpy(A)
+    eq = tp.solve(sc, insertion=D, rotation=A)
+    out = fused_mod.control_blocks(eq)
+    assert out is not None
+    K, J = out
+    rows = torch.arange(len(eq))
+    K_ref, J_ref = jac_mod._one_sided(eq, rows, jac_mod._control_blocks_here)
+    assert bool(eq.force_kink.any()) == (case == "fig3_kink") or not case.startswith("fig3")
+    for x, y in ((K, K_ref), (J, J_ref)):
+        assert float((x - y).abs().max()) <= 1e-9 * float(y.abs().max())
+    cj = eq.jacobians(compliance=False)
+    assert torch.equal(cj.actuator_stiffness, K) and torch.equal(cj.tip_jacobian, J)
+    # rotation columns by central differences of warm solves of the same discrete model
+    N, h = sc.n_tubes, 1e-5
+    opts = tp.SolverOptions(order=eq.order, n_magnus=eq.context.discretization.n_magnus,
+                            tol=1e-13)
+    for j in range(N):
+        e = torch.zeros_like(A)
+        e[:, j] = h
+        tp_ = tp.solve(sc, insertion=D, rotation=A + e, initial=eq, options=opts).tip_position
+        tm_ = tp.solve(sc, insertion=D, rotation=A - e, initial=eq, options=opts).tip_position
+        fd = (tp_ - tm_) / (2 * h)
+        assert float((J[:, :3, N + j] - fd).abs().max()) <= 1e-6 * float(fd.abs().max()) + 1e-12

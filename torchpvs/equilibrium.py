@@ -87,6 +87,12 @@ class Resolver(Protocol):
         """The same robot, actuation and load solved with other ``options``."""
         ...
 
+    def control_blocks(self, eq: Equilibrium) -> tuple[torch.Tensor, torch.Tensor] | None:
+        """``(actuator stiffness (B, 2N, 2N), tip Jacobian (B, 6, 2N))`` of ``eq`` (this
+        solve's equilibrium) by a compiled path where one applies, else None
+        (:mod:`torchpvs.jacobians` then takes its torch closed forms)."""
+        ...
+
     def at(self, insertion: torch.Tensor, rows: torch.Tensor, initial: torch.Tensor,
            options: SolverOptions) -> Equilibrium:
         """Batch rows ``rows (k,)`` solved at other insertions ``insertion (k, N)`` [m] (same

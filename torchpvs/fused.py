@@ -43,7 +43,7 @@ from .compiled import pose_one, step_one
 from .compiled_layout import layout_maps_arrays
 from .compiled_load import cached_jit
 from .equilibrium import Equilibrium
-from .forces import KINK_DELTA, KINK_TOL, kink_plan
+from .forces import KINK_DELTA, KINK_TOL, kink_mask, kink_plan
 from .kernel import COMPILED, VANISHING
 from .newton import stability_threshold, tolerance
 from .options import SolverOptions
@@ -54,7 +54,7 @@ from .scene import Scene
 from .sections import Discretization, TubeTensors, n_coordinates
 from .tracker import layout_and_track
 
-__all__ = ["MAX_BATCH", "FusedSolve", "fused_solve"]
+__all__ = ["MAX_BATCH", "FusedSolve", "control_blocks", "fused_solve"]
 
 
 class FusedSolve(NamedTuple):
@@ -358,3 +358,59 @@ def fused_solve(scene: Scene, tubes: TubeTensors, D, A, F, M, opts: SolverOption
         out = (t(retract), t(tA), t(ins), kink)
     dofs = lay.qmask.numpy().sum(-1).astype(np.int64)
     return FusedSolve(state, out, t(twist), t(verdict == 1), t(dofs))
+
+
+def control_blocks(eq) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """``(K (B, 2N, 2N), J_x (B, 6, 2N))`` of an :class:`~torchpvs.Equilibrium`, the control
+    step of :mod:`torchpvs.jacobians` (actuator stiffness ``U_xx - U_xq H^-1 U_qx`` and tip
+    Jacobian ``P_x - P_q H^-1 U_qx``, one-sided at kinks: the retraction side ``KINK_DELTA``
+    away, with the equilibrium's ``q`` and ``H`` where the sections there have the same
+    coordinates, else at the side's own equilibrium) in ONE compiled call: the tracker's
+    (:func:`torchpvs.tracker.layout_and_track` from the solution, whose Newton test passes at
+    once, and its control rows). ``None`` where it does not apply (the conditions of the fused
+    solve, any batch size; an element that did not converge): the torch closed forms then."""
+    ctx = eq.context
+    info, opts = ctx.implicit, ctx.options
+    q = eq.q
+    B, N = ctx.insertion.shape
+    if (info.with_load or info.has_moment or q.requires_grad or q.device.type != "cpu"
+            or q.dtype != torch.float64 or opts.kernel != "compiled"
+            or not compiled.available() or any(t.requires_grad for t in ctx.tubes.tensors())
+            or not bool(eq.converged.all())):
+        return None
+    tubes = ctx.tubes
+    D, A = ctx.insertion.detach(), ctx.rotation.detach()
+    if opts.compute_forces and opts.force_model == "energy":
+        kink = eq.force_kink.numpy()        # the solve's own analysis (the same mask)
+    else:
+        with torch.no_grad():
+            kink = kink_mask(tubes, D).numpy()
+    Dn = np.ascontiguousarray(D.numpy())
+    L = np.broadcast_to(tubes.length.detach().numpy(), Dn.shape)
+    sign = np.where(np.abs(L - Dn) <= KINK_DELTA / 2, -1.0, 1.0)
+    D_side = np.ascontiguousarray(np.maximum.accumulate(Dn + KINK_DELTA * sign * kink, -1))
+    side = kink.any(-1).astype(np.int8)
+    disc = ctx.discretization
+    t0 = _tables(disc, tubes.coef.shape[-1])
+    tube_arrays = _tube_arrays(tubes, B)
+    eps = float(torch.finfo(q.dtype).eps)
+    consts = np.array([tolerance(newton_tol(ctx.scene, opts), q.dtype), 0.01 * eps ** 0.5, eps,
+                       float(torch.finfo(q.dtype).tiny)])
+    conv = np.zeros(B, dtype=np.bool_)
+    J, K = np.empty((B, 6, 2 * N)), np.empty((B, 2 * N, 2 * N))
+    none = np.zeros(0, dtype=np.int64)
+    length = float(tubes.length.max())
+    layout_and_track(
+        *tube_arrays, Dn, np.ascontiguousarray(A.numpy()), np.zeros(B, dtype=np.bool_),
+        *t0.layout[:5], disc.n_basis, np.ascontiguousarray(q.detach().numpy()),
+        np.zeros((B, 1, 1)), np.zeros((B, 1), dtype=np.int64), np.zeros((B, 1)),
+        np.zeros(B, dtype=np.bool_), np.zeros((B, N)), length, PREDICTOR_TRUST, t0.phi, t0.Qb,
+        t0.phi_m, t0.Q_m, 1e-6, consts, opts.method == "minimize", opts.max_iter,
+        stability_threshold(q.dtype), np.empty((B, 3)), np.empty((B, 3, 3)), np.empty(B),
+        np.zeros(B, dtype=np.int64), conv, np.empty(B, dtype=np.int8), True, D_side, side, J, K,
+        False, np.empty((1, N)), np.empty((1, N)), none, none, np.zeros((0, N)),
+        VANISHING * length, np.empty(0), True, np.empty(B), np.empty((B, max(N - 1, 0))), False,
+        np.empty(1))
+    if not bool(conv.all()):
+        return None
+    return torch.from_numpy(K), torch.from_numpy(J)

@@ -272,7 +272,13 @@ def tip_jacobian(eq, rows=None) -> torch.Tensor:
 
 def _control_blocks(eq, rows: torch.Tensor):
     """``(K (B, 2N, 2N), J_x (B, 6, 2N))`` of batch ``rows``, one-sided at kinks
-    (:func:`_one_sided`)."""
+    (:func:`_one_sided`); of the whole batch in one compiled call where the solve's resolver
+    has one (:func:`torchpvs.fused.control_blocks`: the same closed forms per element)."""
+    resolver = eq.context.resolver
+    if resolver is not None and len(rows) == len(eq):
+        out = resolver.control_blocks(eq)
+        if out is not None:
+            return out
     return _one_sided(eq, rows, _control_blocks_here)
 
 

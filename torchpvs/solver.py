@@ -19,7 +19,7 @@ import torch
 
 from .equilibrium import Equilibrium
 from .forces import ForceState, paper_scope_check
-from .fused import fused_solve
+from .fused import control_blocks, fused_solve
 from .implicit import ImplicitContext, differentiable_outputs
 from .inputs import scene_inputs
 from .kernel import KERNELS
@@ -310,6 +310,10 @@ class SolutionResolver:
             q1[moved] = qm
         return ForceState(q=q1, D=Dn, alpha=An, F=Fn, M=Mn, loaded=loaded, lay=lay, tab=res.tab,
                           disc=disc, with_load=res.with_load, has_moment=res.has_moment)
+
+    def control_blocks(self, eq: Equilibrium):
+        """See :meth:`torchpvs.equilibrium.Resolver.control_blocks`."""
+        return control_blocks(eq)
 
     def again(self, options: SolverOptions, initial=None) -> Equilibrium:
         """See :meth:`torchpvs.equilibrium.Resolver.again`."""
