@@ -6,6 +6,7 @@ import math
 from dataclasses import dataclass, field, fields, replace
 from typing import TYPE_CHECKING, Any, Protocol
 
+import numpy as np
 import torch
 
 from .basis import legendre_basis
@@ -319,7 +320,8 @@ class Equilibrium:
             dofs = qmask.sum(-1).long() if outputs is None else outputs.dofs
             # the kernel's last evaluation at q made it already (bit for bit), where it did
             energy = res.energy
-            if energy is None or not bool(torch.isfinite(energy).all()):
+            if energy is None or not (np.isfinite(energy.numpy()).all() if outputs is not None
+                                      else bool(torch.isfinite(energy).all())):
                 energy = elastic_energy_maps(compact_q(q, res.maps.cidx), res.maps)
             if res.with_load:
                 energy = energy - (lay.force * res.tip).sum(-1)

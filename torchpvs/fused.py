@@ -220,7 +220,8 @@ def _predictor_arrays(initial, D, A, scene: Scene):
     ctx = initial.context if isinstance(initial, Equilibrium) else None
     info = None if ctx is None else ctx.implicit
     if (info is None or info.Hc is None or info.Hc.shape[0] != B or info.with_load
-            or ctx.scene.tubes != scene.tubes or ctx.insertion.shape != D.shape
+            or (ctx.scene.tubes is not scene.tubes and ctx.scene.tubes != scene.tubes)
+            or ctx.insertion.shape != D.shape
             or not torch.equal(ctx.insertion, D)):
         return (np.zeros((B, 1, 1)), np.zeros((B, 1), dtype=np.int64), np.zeros((B, 1)),
                 np.zeros(B, dtype=np.bool_), np.zeros((B, N)))
@@ -295,7 +296,8 @@ def fused_solve(scene: Scene, tubes: TubeTensors, D, A, F, M, opts: SolverOption
         np.zeros(B, dtype=np.int8), no_J, no_K, forces, tD, tA, sel, sj, Dk,
         VANISHING * length, vals, False, U, twist, False, np.empty(1))
     # the layout the context keeps must be the one solved on (same function, same inputs)
-    if not (bool(conv.all()) and np.array_equal(cidx, maps.cidx.numpy())):
+    mc = maps.cidx.numpy()
+    if not (conv.all() and cidx.shape == mc.shape and (cidx == mc).all()):
         return None
     err = est_m = None
     if auto_order or auto_magnus:

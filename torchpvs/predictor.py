@@ -5,6 +5,7 @@ from __future__ import annotations
 
 import math
 
+import numpy as np
 import torch
 
 from .equilibrium import Equilibrium
@@ -24,7 +25,9 @@ def initial_q(initial, B: int, N: int):
     q = initial.q if isinstance(initial, Equilibrium) else torch.as_tensor(initial)
     if q.ndim == 1:
         q = q[None]
-    if not (q.is_floating_point() and bool(torch.isfinite(q).all())):
+    if not (q.is_floating_point() and (np.isfinite(q.detach().numpy()).all()
+                                       if q.device.type == "cpu" and q.dtype != torch.bfloat16
+                                       else bool(torch.isfinite(q).all()))):
         raise ValueError("initial: the warm-start coordinates must be finite floating-point "
                          "numbers (an Equilibrium or a (B, nq) tensor)")
     if q.shape[0] not in (1, B):
