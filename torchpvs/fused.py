@@ -9,7 +9,7 @@ builds tensors, layouts and masks in torch: at a batch of one that glue, not ari
 nearly all of a solve's time (docs/performance.md).
 
 Here the same stages run in two compiled calls: the tracker's fused call
-(:func:`torchpvs.tracker.layout_and_track`: the layout at the solve's order, the predictor,
+(:func:`torchpvs.tracker.solve_core`: the layout at the solve's order, the predictor,
 Newton, the tip pose, the stability verdict, the forces and their kink sides), then
 :func:`_order_check` (the layout at the next order, the order step, the poses of both orders
 and the half-step pose). The driver takes the result only where every element converged and
@@ -52,7 +52,7 @@ from .plan import MAGNUS_START, ORDER_START, Plan
 from .predictor import PREDICTOR_TRUST, initial_q
 from .scene import Scene
 from .sections import Discretization, TubeTensors, n_coordinates
-from .tracker import layout_and_track
+from .tracker import layout_and_track, solve_core
 
 __all__ = ["MAX_BATCH", "FusedSolve", "control_blocks", "fused_solve"]
 
@@ -287,15 +287,14 @@ def fused_solve(scene: Scene, tubes: TubeTensors, D, A, F, M, opts: SolverOption
     else:
         sel, sj, Dk = np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros((0, N))
         tD, tA, vals = np.empty((1, N)), np.empty((1, N)), np.empty(0)
-    no_J, no_K = np.empty((1, 6, 2 * N)), np.empty((1, 2 * N, 2 * N))
-    q, H, cidx, qmask_c = layout_and_track(
+    lay_k, q, H, _ = solve_core(
         *tube_arrays, Dn, An, unloaded, *t0.layout[:5], n, c(q_init.to(dt).numpy()),
         H_prev, cidx_prev, qmc_prev, predict, dA, length, PREDICTOR_TRUST, t0.phi, t0.Qb,
         t0.phi_m, t0.Q_m, 1e-6, consts, opts.method == "minimize", opts.max_iter,
-        stability_threshold(dt), tip, R, res, it, conv, verdict, False, Dn,
-        np.zeros(B, dtype=np.int8), no_J, no_K, forces, tD, tA, sel, sj, Dk,
-        VANISHING * length, vals, False, U, twist, False, np.empty(1))
+        stability_threshold(dt), tip, R, res, it, conv, verdict, forces, tD, tA, sel, sj, Dk,
+        VANISHING * length, vals, U, twist)
     # the layout the context keeps must be the one solved on (same function, same inputs)
+    cidx = lay_k[17]
     mc = maps.cidx.numpy()
     if not (conv.all() and cidx.shape == mc.shape and (cidx == mc).all()):
         return None

@@ -66,7 +66,7 @@ from .predictor import PREDICTOR_TRUST
 from .scene import Scene, load_scene
 from .sections import n_coordinates
 
-__all__ = ["Tracker", "TrackState", "layout_and_track"]
+__all__ = ["Tracker", "TrackState", "layout_and_track", "solve_core"]
 
 
 @dataclass(frozen=True)
@@ -588,24 +588,14 @@ def _no_rows(b, J, K):
 
 
 @cached_jit(nogil=True)
-def layout_and_track(EI, GJ, L, Ls, coef, D, A, unloaded, xg, wg, xq, wq, xm, n, q_prev,
-                      H_prev, cidx_prev, qmc_prev, predict, dA, length, trust, phi, Qb, phi_m,
-                      Q_m, small, consts, minimize, max_iter, tau, tip, R, res, it, conv,
-                      verdict, jac, D_side, side, J, K, want_forces, tau_D, tau_A, sel, sj, Dn,
-                      hmax, side_vals, want_J, U, twist, want_margin, margin):
-    """:func:`torchpvs.compiled_layout.layout_maps_arrays` at ``(D, A)`` then :func:`_track`, in
-    one call: only what the next step and the caller read is returned to Python, ``(q,
-    H, cidx, qmask_c)`` (boxing each of the layout's 32 arrays costs about a microsecond).
-    With ``jac``: the control step into ``J``, ``K`` (:func:`_control_rows`), for the rows
-    where ``side`` at the insertions ``D_side`` (a kink's one side, torchpvs.jacobians) with
-    this ``q`` and ``H`` where the layout there has the same active coordinates, else at the
-    side's own equilibrium (one Newton solve from ``q``); ``side`` then reads 2. With
-    ``want_forces``: the actuation forces and torques at the solution into ``tau_D, tau_A``
-    and the one-sided values at its kinks into ``side_vals`` (:func:`_side_forces`). Always:
-    the energy into ``U``, the relative rotations at the outer tube's end into ``twist`` (both
-    as :class:`~torchpvs.Equilibrium`); with ``want_margin`` its ``min_stiffness_eigenvalue``
-    into ``margin`` (:func:`_margin`). ``want_J`` False: the stiffness without the tip
-    Jacobian."""
+def solve_core(EI, GJ, L, Ls, coef, D, A, unloaded, xg, wg, xq, wq, xm, n, q_prev, H_prev,
+                cidx_prev, qmc_prev, predict, dA, length, trust, phi, Qb, phi_m, Q_m, small,
+                consts, minimize, max_iter, tau, tip, R, res, it, conv, verdict, want_forces,
+                tau_D, tau_A, sel, sj, Dn, hmax, side_vals, U, twist):
+    """:func:`layout_and_track` up to the stability margin and the control step (the arguments
+    of the same names): ``(layout arrays, q, H, Lc)``; :mod:`torchpvs.fused` calls it from
+    Python (the layout's 32 arrays come back boxed, about 30 us, where a compiled wrapper would
+    compile the whole call tree a second time on first use)."""
     lay = layout_maps_arrays(EI, GJ, L, Ls, coef, D, A, unloaded, 1e-12, xg, wg, xq, wq, xm,
                              phi, n)
     (ell, tau_, start, h, present, curved, active, presc, qmask, psi0, gconst, W,
@@ -629,9 +619,6 @@ def layout_and_track(EI, GJ, L, Ls, coef, D, A, unloaded, xg, wg, xq, wq, xm, n,
            gconst, phi, Qb, psec, p_h, p_inc, p_held, p_local, phi_m, Q_m, h.shape[1], small,
            Lc, consts, minimize, max_iter, tau, q, H, tip, R, res, it, conv, verdict, U)
     _outer_twist(q, qmask, psi0, D, h, before_l1, presc_inc, n, twist)
-    if want_margin:
-        for b in range(B):
-            margin[b] = _margin(H[b], qmask_c[b])
     if want_forces:
         for b in range(B):
             if conv[b]:
@@ -644,6 +631,40 @@ def layout_and_track(EI, GJ, L, Ls, coef, D, A, unloaded, xg, wg, xq, wq, xm, n,
                     tau_A[b, j] = np.nan
         _side_forces(q, qmask, conv, sel, sj, Dn, EI, GJ, L, Ls, coef, A, unloaded, xg, wg,
                      xq, wq, xm, phi, Qb, n, hmax, consts[3], side_vals)
+    return lay, q, H, Lc
+
+
+@cached_jit(nogil=True)
+def layout_and_track(EI, GJ, L, Ls, coef, D, A, unloaded, xg, wg, xq, wq, xm, n, q_prev,
+                      H_prev, cidx_prev, qmc_prev, predict, dA, length, trust, phi, Qb, phi_m,
+                      Q_m, small, consts, minimize, max_iter, tau, tip, R, res, it, conv,
+                      verdict, jac, D_side, side, J, K, want_forces, tau_D, tau_A, sel, sj, Dn,
+                      hmax, side_vals, want_J, U, twist, want_margin, margin):
+    """:func:`torchpvs.compiled_layout.layout_maps_arrays` at ``(D, A)`` then :func:`_track`, in
+    one call: only what the next step and the caller read is returned to Python, ``(q,
+    H, cidx, qmask_c)`` (boxing each of the layout's 32 arrays costs about a microsecond).
+    With ``jac``: the control step into ``J``, ``K`` (:func:`_control_rows`), for the rows
+    where ``side`` at the insertions ``D_side`` (a kink's one side, torchpvs.jacobians) with
+    this ``q`` and ``H`` where the layout there has the same active coordinates, else at the
+    side's own equilibrium (one Newton solve from ``q``); ``side`` then reads 2. With
+    ``want_forces``: the actuation forces and torques at the solution into ``tau_D, tau_A``
+    and the one-sided values at its kinks into ``side_vals`` (:func:`_side_forces`). Always:
+    the energy into ``U``, the relative rotations at the outer tube's end into ``twist`` (both
+    as :class:`~torchpvs.Equilibrium`); with ``want_margin`` its ``min_stiffness_eigenvalue``
+    into ``margin`` (:func:`_margin`). ``want_J`` False: the stiffness without the tip
+    Jacobian."""
+    lay, q, H, Lc = solve_core(
+        EI, GJ, L, Ls, coef, D, A, unloaded, xg, wg, xq, wq, xm, n, q_prev, H_prev, cidx_prev,
+        qmc_prev, predict, dA, length, trust, phi, Qb, phi_m, Q_m, small, consts, minimize,
+        max_iter, tau, tip, R, res, it, conv, verdict, want_forces, tau_D, tau_A, sel, sj, Dn,
+        hmax, side_vals, U, twist)
+    (ell, tau_, start, h, present, curved, active, presc, qmask, psi0, gconst, W,
+     tip_tube, _s_tip, before_l1, _sec, psec, cidx, ustar, EIw, EIws, GJw, Hsec, guide,
+     bvec, qmask_c, h_c, presc_inc, p_h, p_inc, p_held, p_local) = lay
+    B = q.shape[0]
+    if want_margin:
+        for b in range(B):
+            margin[b] = _margin(H[b], qmask_c[b])
     if not jac:
         return q, H, cidx, qmask_c
     any_side = False
