@@ -34,6 +34,7 @@ from torchpvs.testing import (
     nested_scene,
     random_scene,
     scene_strategy,
+    spy_results,
 )
 
 DT = torch.float64
@@ -122,16 +123,7 @@ def test_float32_matches_float64_eager_to_float32_precision():
 def _spy_compiled_solve(monkeypatch) -> list[bool]:
     """Patch compiled.solve to record, per call, whether the compiled kernel solved (True) or
     handed the solve to the eager one (None returned: False)."""
-    calls = []
-    real = compiled.solve
-
-    def solve(*a, **k):
-        out = real(*a, **k)
-        calls.append(out is not None)
-        return out
-
-    monkeypatch.setattr(compiled, "solve", solve)
-    return calls
+    return spy_results(monkeypatch, compiled, "solve")
 
 
 @pytest.mark.parametrize("force", [[0.1, -0.2, 0.05], [0.5, 0.3, -0.4]])
@@ -679,10 +671,11 @@ def test_the_compiled_new_section_step_is_the_eager_one(monkeypatch):
 def test_a_one_thread_batch_solve_launches_no_numba_thread_pool():
     """With one torch thread a batch of >= 8 runs the serial loop and never starts numba's
     thread pool: its OpenMP worker would spin a second core for the rest of the process (a
-    one-thread training used 1.8 cores). In a fresh process, as a training run starts."""
+    one-thread training used 1.8 cores). In a fresh process, as a training run starts; 64
+    rows, so that the driver's rounds solve (the fused path takes up to 32, serially)."""
     code = ("import torch, numba, torchpvs; torch.set_num_threads(1); "
             "sc = torchpvs.load_scene('renda2021_fig3'); "
-            "r = torchpvs.solve(sc, rotation=torch.rand(16, 2, dtype=torch.float64), "
+            "r = torchpvs.solve(sc, rotation=torch.rand(64, 2, dtype=torch.float64), "
             "options=torchpvs.SolverOptions(kernel='compiled')); "
             "assert bool(r.converged.all())\n"
             "try:\n    print('layer', numba.threading_layer())\n"

@@ -22,7 +22,12 @@ import torchpvs.fused as fused_mod
 import torchpvs.solver as solver_mod
 from torchpvs import compiled
 from torchpvs.plan import Plan, plan_for
-from torchpvs.testing import assert_same_equilibria, feasible_actuations, random_scene
+from torchpvs.testing import (
+    assert_same_equilibria,
+    feasible_actuations,
+    random_scene,
+    spy_results,
+)
 
 pytestmark = pytest.mark.skipif(not compiled.available(), reason="numba not importable")
 
@@ -30,15 +35,8 @@ pytestmark = pytest.mark.skipif(not compiled.available(), reason="numba not impo
 def _both(monkeypatch, scene, **kw):
     """``(fused, rounds, taken)``: the call with the fused path, the same call without it, and
     whether the fused path returned the first (not declined)."""
-    taken = []
     real = fused_mod.fused_solve
-
-    def spy(*a, **k):
-        out = real(*a, **k)
-        taken.append(out is not None)
-        return out
-
-    monkeypatch.setattr(solver_mod, "fused_solve", spy)
+    taken = spy_results(monkeypatch, solver_mod, "fused_solve", real)
     a = tp.solve(scene, **kw)
     monkeypatch.setattr(solver_mod, "fused_solve", lambda *a, **k: None)
     b = tp.solve(scene, **kw)

@@ -184,6 +184,23 @@ def assert_same_equilibria(a, b, tip_tol: float = 1e-12, force_tol: float = 1e-9
                           atol=1e-12, equal_nan=True)
 
 
+def spy_results(monkeypatch, module, name: str, real=None) -> list[bool]:
+    """Replace ``module.name`` (via pytest's ``monkeypatch``) by a wrapper of ``real`` (default
+    the current ``module.name``) that records, per call, whether it returned something other
+    than None: which calls a compiled or fused path took rather than handing on. Returns the
+    list it appends to."""
+    calls: list[bool] = []
+    fn = getattr(module, name) if real is None else real
+
+    def spy(*a, **k):
+        out = fn(*a, **k)
+        calls.append(out is not None)
+        return out
+
+    monkeypatch.setattr(module, name, spy)
+    return calls
+
+
 @contextlib.contextmanager
 def one_thread():
     """Context manager: one torch thread (tiny solves spin-wait badly on a busy 2-core box)."""
