@@ -265,7 +265,7 @@ def fused_solve(scene: Scene, tubes: TubeTensors, D, A, F, M, opts: SolverOption
     P = tubes.coef.shape[-1]
     t0 = _tables(disc, P)
     c = np.ascontiguousarray
-    if tubes.EI.shape[0] == 1:
+    if tubes is plan.tubes:        # (the plan's own tubes never change; others may)
         tube_arrays = plan.static(("fused tube arrays", B), lambda: _tube_arrays(tubes, B))
     else:
         tube_arrays = _tube_arrays(tubes, B)
