@@ -77,6 +77,68 @@ def test_a_batch_of_mixed_sections_matches():
     assert_same(*both(fig3(), insertion=ins, rotation=rot))
 
 
+def test_padding_a_batch_changes_no_bit_of_an_element():
+    """A batch pads each element's compact coordinates to its longest element's; the compiled
+    Newton works on the sections that matter (``compiled.active_extent``) and the tracker's
+    factorizations skip the padding (``compiled.factor_leading``). Reference: each element
+    solved alone, with no padding at all: the same coordinates, iterations, residuals, tips,
+    forces, stability margins and actuator stiffnesses, bit for bit (the padding is an
+    identity block that adds exact zeros)."""
+    rng = np.random.default_rng(5)
+    k = 24
+    D = np.column_stack([rng.uniform(0.0, 0.12, k), rng.uniform(0.12, 0.21, k)])
+    A = rng.uniform(-math.pi, math.pi, (k, 2))
+    scene = fig3()
+    tracker = tp.Tracker(scene, insertion=D[:1], rotation=A[:1])
+    near = tp.solve(scene, insertion=torch.tensor(D), rotation=torch.tensor(A),
+                    options=tracker.options)
+    assert bool(near.converged.all())
+    dofs = near.dofs.numpy()
+    assert len(set(dofs.tolist())) >= 3            # padded: elements of 1, 2 and 3 sections
+    q0 = near.q.numpy()
+    kw = {"stiffness": True, "forces": True, "margin": True, "threads": 1}
+    batch = tracker.solve_from(q0, D, A + 0.05, **kw)
+    assert batch.converged.all() and (batch.iterations > 0).any()
+    for b in range(k):
+        alone = tracker.solve_from(q0[b:b + 1], D[b:b + 1], A[b:b + 1] + 0.05, **kw)
+        for name in ("q", "tip", "R", "residual", "iterations", "energy", "actuation_forces",
+                     "actuation_torques", "min_stiffness_eigenvalue", "actuator_stiffness"):
+            np.testing.assert_array_equal(getattr(batch, name)[b], getattr(alone, name)[0],
+                                          err_msg=f"{name}, element {b} ({dofs[b]} dofs)")
+
+
+def test_the_leading_factorization_is_the_full_one():
+    """``compiled.factor_leading`` / ``solve_leading`` on a matrix with a decoupled, inactive
+    trailing block against ``cholesky`` / ``cho_solve`` on the whole matrix: the same solution
+    bit for bit; a coupled or active trailing row is kept in the leading block; a matrix that
+    is not positive definite (in the block or after it) is reported."""
+    rng = np.random.default_rng(2)
+    n, ne = 11, 7
+    M = rng.normal(size=(ne, ne))
+    H = np.diag(rng.uniform(0.5, 2.0, n))
+    H[:ne, :ne] = M @ M.T + ne * np.eye(ne)
+    qm = np.zeros(n)
+    qm[:ne - 1] = 1.0               # the last leading row is inactive but coupled
+    b = rng.normal(size=n)
+    L, ok = compiled.factor_leading(H, qm, 0)
+    assert ok and L.shape == (ne, ne)
+    x, ref = np.empty(n), np.empty(n)
+    compiled.solve_leading(H, L, b, x)
+    Lf = np.empty((n, n))
+    assert compiled.cholesky(H, Lf)
+    compiled.cho_solve(Lf, b, ref)
+    np.testing.assert_array_equal(x, ref)
+    np.testing.assert_allclose(H @ x, b, rtol=1e-12, atol=1e-12)
+    H2 = H.copy()
+    H2[n - 1, n - 1] = -1.0         # a negative pivot after the block
+    assert not compiled.factor_leading(H2, qm, 0)[1]
+    H3 = H.copy()
+    H3[0, 0] = -1.0                 # inside it
+    assert not compiled.factor_leading(H3, qm, 0)[1]
+    qm[n - 2] = 1.0                 # an active row further on: kept
+    assert compiled.factor_leading(H, qm, 0)[0].shape == (n - 1, n - 1)
+
+
 @pytest.mark.parametrize("alpha2", [170.0, 186.0, 190.0])
 @pytest.mark.parametrize("method", ["minimize", "root"])
 def test_multistable_robot_same_branch_and_verdict(alpha2, method):

@@ -418,11 +418,13 @@ def evaluate(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi,
     Hessian's within-section blocks, without the terms through the angle bases and the guide
     diagonal (mechanics.section_grad_block's blocks, in place in H)."""
     N = psi0.shape[0]
-    S = h.shape[0]
     Q, n = phi.shape
     C = 2 + N
     Cn = C * n
     nc = q.shape[0]
+    # the sections whose coordinates q holds: all of them, or the leading ones where
+    # newton_one drops trailing sections that add nothing (active_extent)
+    S = min(h.shape[0], (nc - N) // Cn)
     U = 0.0
     if order >= 1:
         g[:] = 0.0
@@ -636,6 +638,52 @@ def cholesky(A, L):
     return True
 
 @_jit
+def leading_extent(H, qm, lo):
+    """``n_e >= lo``: the rows of a symmetric ``H`` after the first ``n_e`` are inactive
+    (``qm`` zero) and decoupled (zero off the diagonal), the identity-like block a batch's
+    padding leaves (:func:`newton_one`); a factorization of the leading block and those
+    diagonal entries is the full one, bit for bit, at a fraction of the cost."""
+    n = H.shape[0]
+    for i in range(n - 1, lo - 1, -1):
+        if qm[i] > 0:
+            return i + 1
+        for k in range(n):
+            if k != i and H[i, k] != 0.0:
+                return i + 1
+    return lo
+
+
+@_jit
+def factor_leading(H, qm, lo):
+    """``(L, ok)``: the Cholesky factor ``L (n_e, n_e)`` of ``H``'s leading block
+    (:func:`leading_extent`); ``ok`` False where ``H`` is not positive definite. With
+    :func:`solve_leading`, what :func:`cholesky` and :func:`cho_solve` on the full ``H``
+    give, bit for bit."""
+    n = H.shape[0]
+    ne = leading_extent(H, qm, lo)
+    He = np.empty((ne, ne), dtype=H.dtype)
+    for i in range(ne):
+        for k in range(ne):
+            He[i, k] = H[i, k]
+    L = np.empty((ne, ne), dtype=H.dtype)
+    ok = cholesky(He, L)
+    for i in range(ne, n):
+        ok = ok and H[i, i] > 0.0
+    return L, ok
+
+
+@_jit
+def solve_leading(H, L, b, x):
+    """``x (n,) = H^-1 b`` from :func:`factor_leading`'s ``L``: the leading block by
+    substitution, the decoupled rows after it by their diagonal (as the full factor's
+    substitutions divide twice by its square root)."""
+    cho_solve(L, b, x)
+    for i in range(L.shape[0], H.shape[0]):
+        r = math.sqrt(H[i, i])
+        x[i] = (b[i] / r) / r
+
+
+@_jit
 def cho_solve(L, b, x):
     n = L.shape[0]
     for i in range(n):
@@ -720,11 +768,72 @@ def all_finite(v):
     return True
 
 @_jit
+def active_extent(qm, EIw, EIws, GJw, Hsec, N, Cn):
+    """The length of the leading part of an element's compact coordinates that matters:
+    ``N + s * Cn`` for the first ``s`` sections, where every later section has no active
+    coordinate and no stiffness (zero weights and section block: a shorter element of a
+    batch padded to its longest). Such sections add exactly zero to the energy, its gradient
+    and its Hessian (:func:`evaluate`), and their coordinates form an identity block of the
+    Newton matrix, so the solve on the leading part is bit for bit the padded one."""
+    S = EIw.shape[0]
+    nc = qm.shape[0]
+    used = 0
+    for s in range(S):
+        keep = False
+        for i in range(N + s * Cn, min(N + (s + 1) * Cn, nc)):
+            if qm[i] > 0:
+                keep = True
+        if not keep:
+            keep = EIws[s].any() or EIw[s].any() or GJw[s].any() or Hsec[s].any()
+        if keep:
+            used = s + 1
+    return min(N + used * Cn, nc)
+
+
+@_jit
 def newton_one(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb, ld,
                Lc, consts, minimize, max_iter, H, g, out):
     """One element's damped Newton (newton._newton). q and H, g are overwritten with the
     solution and the Hessian and gradient at it; out = (U, residual, iterations,
-    converged, verdict)."""
+    converged, verdict). Unloaded, on the coordinates of the sections that matter
+    (:func:`active_extent`; the Cholesky factorizations' cost goes with the cube of their
+    number): the trailing ones keep the identity block and zero gradient the padded solve
+    gives them."""
+    nc = q.shape[0]
+    ne = nc
+    if ld is None:        # (a tip load's work reads the full coordinates)
+        N = psi0.shape[0]
+        ne = active_extent(qm, EIw, EIws, GJw, Hsec, N, (2 + N) * phi.shape[1])
+    if ne == nc:
+        _newton_core(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb,
+                     ld, Lc, consts, minimize, max_iter, H, g, out)
+        return
+    qe = q[:ne].copy()
+    He = np.empty((ne, ne), dtype=q.dtype)
+    ge = np.empty(ne, dtype=q.dtype)
+    _newton_core(qe, qm[:ne].copy(), psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst,
+                 phi, Qb, ld, Lc, consts, minimize, max_iter, He, ge, out)
+    for i in range(ne):
+        q[i] = qe[i]
+        g[i] = ge[i]
+        for k in range(ne):
+            H[i, k] = He[i, k]
+    moved = out[2] > 0      # (an iteration sets the inactive coordinates to trial * 0)
+    for i in range(ne, nc):
+        if moved:
+            q[i] = 0.0 * q[i]
+        g[i] = guide[i] * q[i]
+        for k in range(nc):
+            H[i, k] = 0.0
+            H[k, i] = 0.0
+        H[i, i] = guide[i] + (1.0 - qm[i])
+
+
+@_jit
+def _newton_core(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb, ld,
+                 Lc, consts, minimize, max_iter, H, g, out):
+    """:func:`newton_one` on the coordinates given (``q``, ``qm``, ``H``, ``g`` of one
+    length; the layout's arrays may be longer)."""
     tol, thr, eps, tiny = consts[0], consts[1], consts[2], consts[3]
     nc = q.shape[0]
     dt = q.dtype

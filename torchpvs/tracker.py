@@ -44,13 +44,14 @@ import torch
 from . import compiled
 from .basis import gauss_legendre
 from .compiled import (
-    cho_solve,
     cholesky,
+    factor_leading,
     lu_solve,
     newton_into,
     partials_one,
     pose_one,
     section_step_one,
+    solve_leading,
     step_one,
     stiffness_rows_one,
     tip_directional,
@@ -165,7 +166,6 @@ def _track(q_prev, H_prev, cidx_prev, qmc_prev, predict, dA, D, GJ, length, trus
     qc = np.empty((B, nc), dtype=dt)
     psi_tip = np.empty((B, N), dtype=dt)
     qi = np.empty(nq, dtype=dt)
-    Lp = np.empty((ncp, ncp), dtype=dt)
     rhs = np.empty(ncp, dtype=dt)
     x = np.empty(ncp, dtype=dt)
     for b in range(B):
@@ -173,13 +173,13 @@ def _track(q_prev, H_prev, cidx_prev, qmc_prev, predict, dA, D, GJ, length, trus
             qi[i] = q_prev[b, i]
         if predict[b]:
             # torchpvs.predictor.rotation_predictor: dq = -H^-1 U_q,alpha dalpha
-            ok = cholesky(H_prev[b], Lp)
+            Lp, ok = factor_leading(H_prev[b], qmc_prev[b], 0)
             if ok:
                 for i in range(ncp):
                     rhs[i] = 0.0
                 for j in range(N):
                     rhs[j] = GJ[b, j] * dA[b, j]
-                cho_solve(Lp, rhs, x)
+                solve_leading(H_prev[b], Lp, rhs, x)
                 for j in range(N):
                     x[j] -= dA[b, j] / (D[b, j] if D[b, j] > 0 else 1.0)
                 big = 0.0
@@ -271,15 +271,15 @@ def _control_rows(b, q, H, cidx, qmask_c, qmask, D, L, Ls, EI, GJ, coef, tau, ps
                 v = H[b, iw[j], iw[k]] - (gjd if j == k else 0.0)
                 X[a, N + k] = v / (D[b, j] * D[b, k])
     Z = np.empty((nc, m), dtype=dt)
-    Lf = np.empty((nc, nc), dtype=dt)
     rhs = np.empty(nc, dtype=dt)
     z = np.empty(nc, dtype=dt)
-    chol = cholesky(H[b], Lf)
+    # (on the leading block: the rest is a batch's padding, compiled.factor_leading)
+    Lf, chol = factor_leading(H[b], qmask_c[b], 0)
     for d in range(m):
         for i in range(nc):
             rhs[i] = G[d, i]
         if chol:
-            cho_solve(Lf, rhs, z)
+            solve_leading(H[b], Lf, rhs, z)
         else:
             # not positive definite (an unstable equilibrium): pivoted elimination
             if not lu_solve(H[b].copy(), rhs, z):
