@@ -325,10 +325,9 @@ class Equilibrium:
                 energy = elastic_energy_maps(compact_q(q, res.maps.cidx), res.maps)
             if res.with_load:
                 energy = energy - (lay.force * res.tip).sum(-1)
-        forces = torques = insert_side = None
-        kink = torch.zeros_like(res.D, dtype=torch.bool)
+        forces = torques = insert_side = kink = None
         paper = opts.compute_forces and getattr(opts, "force_model", "energy") == "paper"
-        if opts.compute_forces:
+        if opts.compute_forces and (outputs is None or outputs.forces is None):
             state = ForceState(q=q, D=res.D, alpha=res.alpha, F=res.F, M=res.M,
                                loaded=res.loaded, lay=lay, tab=tab, disc=res.disc,
                                with_load=res.with_load, has_moment=res.has_moment)
@@ -344,6 +343,8 @@ class Equilibrium:
                 tubes, state, resolver.near, cache=cache,
                 partials=KERNELS[opts.kernel].partials,
                 tip_partials=KERNELS[opts.kernel].tip_partials)
+        if kink is None:
+            kink = torch.zeros_like(res.D, dtype=torch.bool)
         conv = res.converged
         # A verdict needs an equilibrium: where the solve did not converge, the state is not
         # one, and its Hessian's sign says nothing about stability (a precurvature of 1e6 1/m

@@ -200,6 +200,16 @@ def _tube_arrays(tubes: TubeTensors, B: int) -> tuple[np.ndarray, ...]:
                  for x in (tubes.EI, tubes.GJ, tubes.length, tubes.straight, tubes.coef))
 
 
+def _constants(scene: Scene, tubes: TubeTensors, opts: SolverOptions):
+    """``(length, consts)``: the longest tube [m] and the Newton constants of the compiled
+    calls ``(tolerance, saddle threshold, eps, tiny)`` (float64)."""
+    dt = torch.float64
+    eps = float(torch.finfo(dt).eps)
+    consts = np.array([tolerance(newton_tol(scene, opts), dt), 0.01 * eps ** 0.5, eps,
+                       float(torch.finfo(dt).tiny)])
+    return float(tubes.length.max()), consts
+
+
 def _kinks(tubes: TubeTensors, D):
     """:func:`torchpvs.forces.kink_plan` at ``D`` and its sides as arrays ``(plan, sel, sj,
     Dn)`` (empty where there is no kink)."""
@@ -226,7 +236,8 @@ def _predictor_arrays(initial, D, A, scene: Scene):
         return (np.zeros((B, 1, 1)), np.zeros((B, 1), dtype=np.int64), np.zeros((B, 1)),
                 np.zeros(B, dtype=np.bool_), np.zeros((B, N)))
     dA = A.numpy() - ctx.rotation.detach().numpy()
-    dA = dA - (2 * math.pi) * np.round(dA / (2 * math.pi))
+    if not np.abs(dA).max() <= math.pi:       # (whole turns: none within +-pi)
+        dA = dA - (2 * math.pi) * np.round(dA / (2 * math.pi))
     c = np.ascontiguousarray
     return (c(info.Hc.detach().numpy()), c(info.cidx.numpy()), c(info.qmask_c.detach().numpy()),
             np.ones(B, dtype=np.bool_), c(dA))
@@ -254,10 +265,11 @@ def fused_solve(scene: Scene, tubes: TubeTensors, D, A, F, M, opts: SolverOption
     n = disc.n_basis
     nq = n_coordinates(N, n)
     dt = D.dtype
+    own = tubes is plan.tubes       # (the plan's own tubes never change; others may)
     loaded = torch.zeros(B, dtype=torch.bool)
     # (outside inference mode: the layout the context keeps is then an ordinary tensor, which
     # Equilibrium.released need not copy)
-    lay, maps = plan.layout(tubes, D, A, F, M, loaded, disc, nq, COMPILED.layout)
+    lay, maps = plan.layout(tubes, D, A, F, M, loaded, disc, nq, COMPILED.layout, grad=False)
     tab = disc.tables(dt, D.device)
     if q_init is None:
         with torch.no_grad():
@@ -265,17 +277,16 @@ def fused_solve(scene: Scene, tubes: TubeTensors, D, A, F, M, opts: SolverOption
     P = tubes.coef.shape[-1]
     t0 = _tables(disc, P)
     c = np.ascontiguousarray
-    if tubes is plan.tubes:        # (the plan's own tubes never change; others may)
+    if own:
         tube_arrays = plan.static(("fused tube arrays", B), lambda: _tube_arrays(tubes, B))
+        length, consts = plan.static(("fused constants", opts.tol, opts.accuracy),
+                                     lambda: _constants(scene, tubes, opts))
     else:
         tube_arrays = _tube_arrays(tubes, B)
+        length, consts = _constants(scene, tubes, opts)
     Dn, An = c(D.numpy()), c(A.numpy())
     unloaded = np.zeros(B, dtype=np.bool_)
     H_prev, cidx_prev, qmc_prev, predict, dA = _predictor_arrays(initial, D, A, scene)
-    length = float(tubes.length.max())
-    eps = float(torch.finfo(dt).eps)
-    consts = np.array([tolerance(newton_tol(scene, opts), dt), 0.01 * eps ** 0.5, eps,
-                       float(torch.finfo(dt).tiny)])
     tip, R, res = np.empty((B, 3)), np.empty((B, 3, 3)), np.empty(B)
     it, conv = np.zeros(B, dtype=np.int64), np.zeros(B, dtype=np.bool_)
     verdict, U, twist = np.empty(B, dtype=np.int8), np.empty(B), np.empty((B, max(N - 1, 0)))

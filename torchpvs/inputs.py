@@ -18,7 +18,34 @@ def _values(t: torch.Tensor):
     return t.detach().numpy() if t.device.type == "cpu" else t
 
 
+_NUMPY_DTYPES = {torch.float64: np.float64, torch.float32: np.float32}
+
+
+def _plain_numbers(x) -> bool:
+    """A tuple or list of Python floats and ints, or a numpy float array: what a scene's
+    defaults and most callers pass (converted through numpy, a few microseconds cheaper per
+    field than ``torch.as_tensor``, which bounds a single solve)."""
+    if isinstance(x, np.ndarray):
+        return x.dtype.kind in "fiu"
+    if isinstance(x, (tuple, list)):
+        for v in x:
+            if not isinstance(v, (float, int)) or isinstance(v, bool):
+                return False
+        return True
+    return False
+
+
 def as_batch(x, n: int, name: str, dtype, device) -> torch.Tensor:
+    np_dtype = _NUMPY_DTYPES.get(dtype)
+    if np_dtype is not None and torch.device(device).type == "cpu" and _plain_numbers(x):
+        a = np.asarray(x, dtype=np_dtype)
+        if a.ndim == 1:
+            a = a[None]
+        if a.ndim != 2 or a.shape[-1] != n:
+            raise ValueError(f"{name} must have shape ({n},) or (B, {n}), got {a.shape}")
+        if not np.isfinite(a).all():
+            raise ValueError(f"{name} must be finite")
+        return torch.from_numpy(a)
     t = torch.as_tensor(x, dtype=dtype, device=device)
     if t.ndim == 1:
         t = t[None]
@@ -33,6 +60,15 @@ def as_batch(x, n: int, name: str, dtype, device) -> torch.Tensor:
 
 def check_actuation(D: torch.Tensor, scene: Scene) -> None:
     v = _values(D)
+    if isinstance(v, np.ndarray) and v.shape[0] == 1:
+        # one row (a single solve): its few numbers in Python, not two array reductions
+        row = v[0].tolist()
+        if any(d < 0 for d in row):
+            raise ValueError("insertion: every D_j must be >= 0 (docs/conventions.md)")
+        if any(b < a for a, b in zip(row, row[1:], strict=False)):
+            raise ValueError("insertion: D_j must be >= D_{j-1} for every batch element "
+                             "(an inner tube's base lies behind the outer one's)")
+        return
     if (v < 0).any():
         raise ValueError("insertion: every D_j must be >= 0 (docs/conventions.md)")
     if scene.n_tubes > 1 and (v[:, 1:] < v[:, :-1]).any():
@@ -97,8 +133,8 @@ def batch_inputs(scene: Scene, insertion, rotation, tip_force, tip_moment, dtype
     for name, t in (("insertion", D), ("rotation", A), ("tip_force", F), ("tip_moment", M)):
         if t.shape[0] not in (1, B):
             raise ValueError(f"{name} has batch size {t.shape[0]}, expected 1 or {B}")
-    out = tuple(t.expand(B, -1) for t in (D, A, F, M))
+    out = tuple(t if t.shape[0] == B else t.expand(B, -1) for t in (D, A, F, M))
     if contiguous:
-        out = tuple(t.contiguous() for t in out)
+        out = tuple(t if t.is_contiguous() else t.contiguous() for t in out)
     check_actuation(out[0].detach(), scene)
     return out

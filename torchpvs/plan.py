@@ -75,14 +75,17 @@ class Plan:
     _static: dict = field(default_factory=dict, repr=False)
 
     def layout(self, tubes: TubeTensors, D, A, F, M, loaded, disc: Discretization,
-               nq: int, build=build_layout_and_maps) -> tuple[Layout, Maps]:
+               nq: int, build=build_layout_and_maps, grad: bool | None = None,
+               ) -> tuple[Layout, Maps]:
         """``(lay, maps)`` for a batch (:class:`~torchpvs.sections.Layout`,
         :class:`~torchpvs.mechanics.Maps`); reused from the last call with the same insertions,
         loaded mask, discretization and tube tensors (only angles and loads are replaced).
         ``build``: the kernel's builder (:attr:`torchpvs.kernel.Kernel.layout`; default the
-        eager one, :func:`torchpvs.mechanics.build_layout_and_maps`)."""
-        grad = torch.is_grad_enabled() and any(
-            t.requires_grad for t in (D, A, F, M, *tubes.tensors()))
+        eager one, :func:`torchpvs.mechanics.build_layout_and_maps`). ``grad``: whether a
+        gradient flows through the inputs, where the caller knows (else found here)."""
+        if grad is None:
+            grad = torch.is_grad_enabled() and any(
+                t.requires_grad for t in (D, A, F, M, *tubes.tensors()))
         key = (disc, D.shape)
         memo = self._memo.get(key)
         if (not grad and memo is not None and memo.D.shape == D.shape

@@ -36,7 +36,8 @@ def initial_q(initial, B: int, N: int):
     order = n_from - 1 if n_coordinates(N, n_from) == q.shape[-1] and n_from >= 1 else None
     magnus = (initial.context.discretization.n_magnus if isinstance(initial, Equilibrium)
               else None)
-    return q.detach().expand(B, -1), order, magnus
+    q = q.detach()
+    return (q if q.shape[0] == B else q.expand(B, -1)), order, magnus
 
 
 # Largest predicted change of a strain coordinate x the robot's length [rad] that the rotation

@@ -15,6 +15,7 @@ import time
 import warnings
 from dataclasses import dataclass, replace
 
+import numpy as np
 import torch
 
 from .equilibrium import Equilibrium
@@ -88,11 +89,15 @@ def solve_tensors(scene: Scene, tubes: TubeTensors, D, A, F, M, opts: SolverOpti
     B = D.shape[0]
     t0 = time.perf_counter()
     plan = plan if plan is not None else Plan(tubes)
-    needs_grad = torch.is_grad_enabled() and any(
-        t.requires_grad for t in (D, A, F, M, *tubes.tensors()))
+    needs_grad = torch.is_grad_enabled() and (
+        D.requires_grad or A.requires_grad or F.requires_grad or M.requires_grad
+        or any(t.requires_grad for t in tubes.tensors()))
     # U*(alpha) is 2 pi-periodic in every base rotation and q holds no absolute angle: solving
     # at alpha - 2 pi k (k constant, no gradient) keeps cos/sin accurate for large angles.
-    A = A - (2 * math.pi) * torch.round(A.detach() / (2 * math.pi))
+    # (k is 0 for every angle within +-pi: nothing to subtract, checked in numpy on the CPU)
+    if not (A.device.type == "cpu" and not A.requires_grad
+            and bool(np.abs(A.numpy()).max() <= math.pi)):
+        A = A - (2 * math.pi) * torch.round(A.detach() / (2 * math.pi))
     D_in, A_in, F_in, M_in, tubes_in = D, A, F, M, tubes
     # Owned copies: the plan keeps layouts that refer to them (a caller may reuse its buffers).
     D, A, F, M = (t.detach().clone() for t in (D, A, F, M))
@@ -120,16 +125,23 @@ def solve_tensors(scene: Scene, tubes: TubeTensors, D, A, F, M, opts: SolverOpti
     resolver = SolutionResolver(scene, tubes, D, A, F, M, res, opts, plan)
     # (the fused path's few outputs are built outside inference mode: nothing to release
     # unless its layout came from a plan entry the rounds made in inference mode)
-    with torch.inference_mode(not needs_grad and fused is None):
+    if fused is not None:
         eq = Equilibrium.from_solution(scene, tubes, res, opts, elapsed, diff, plan, resolver,
                                        outputs=fused)
+    else:
+        with torch.inference_mode(not needs_grad):
+            eq = Equilibrium.from_solution(scene, tubes, res, opts, elapsed, diff, plan,
+                                           resolver)
     if not needs_grad and (fused is None or res.lay.qmask.is_inference()
                            or res.maps.cidx.is_inference()):
         eq = eq.released()
+    # (the checks below in numpy where the flags are CPU tensors: a single solve's glue)
+    cpu = eq.converged.device.type == "cpu"
+    conv = eq.converged.numpy() if cpu else eq.converged
     if opts.order is None and opts.on_failure != "ignore":
-        short = eq.converged & ~eq.accuracy_met
+        short = conv & ~(eq.accuracy_met.numpy() if cpu else eq.accuracy_met)
         if bool(short.any()):
-            b = int(short.nonzero()[0])
+            b = int(short.nonzero()[0][0]) if cpu else int(short.nonzero()[0])
             warnings.warn(
                 f"torchpvs.solve: requested accuracy {opts.accuracy:g} m not reached for "
                 f"{int(short.sum())} of {B} element(s) (first: element {b}, error estimate "
@@ -137,7 +149,7 @@ def solve_tensors(scene: Scene, tubes: TubeTensors, D, A, F, M, opts: SolverOpti
                 f"(max_order={opts.max_order}), {res.disc.n_magnus} Magnus steps); see "
                 f"Equilibrium.accuracy_met", AccuracyWarning, stacklevel=2)
     if opts.on_failure != "ignore":
-        n_failed = int((~eq.converged).sum())
+        n_failed = int((~conv).sum())
         if n_failed:
             first = int((~eq.converged).nonzero()[0])
             msg = (f"torchpvs.solve: {n_failed} of {B} element(s) did not converge "
