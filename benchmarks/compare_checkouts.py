@@ -6,7 +6,8 @@ e.g. ``git worktree add /tmp/old <commit>`` then
 ``python benchmarks/compare_checkouts.py /tmp/old .``. Each round runs this script's probe in a
 fresh process per checkout (``PYTHONPATH=<tree>``, one torch thread), old then new: Fig. 3 and
 the three-tube robot, 32 configurations (the last tube's rotation over [0, 250] deg), B = 1
-warm from the equilibrium 1 deg away and cold, the control step
+warm from the equilibrium 1 deg away, warm from the equilibrium 0.1 mm away in the last
+tube's insertion (every call at new insertions) and cold, the control step
 (``solve(...).jacobians(compliance=False)``, 8 configurations), the kernel's tip partials
 alone (``Kernel.tip_partials`` on a solve's layout, B = 1, where both trees have them) and
 B = 1024 warm; each figure the best of 5 passes, in ms per solve (per call). ``--loaded``
@@ -74,6 +75,19 @@ def probe(with_envs: bool = False, solves: bool = True, loaded: bool = False) ->
                 torchpvs.solve(sc, insertion=ins[i:i + 1], rotation=rot[i:i + 1],
                                initial=prev[i], options=opts)
 
+        # insertion steps: each configuration's last tube 0.1 mm further in than its warm
+        # start, every call at insertions the call before did not have (no kept layout)
+        ins_s = ins.clone()
+        ins_s[:, -1] -= 1e-4 * torch.arange(1, n + 1, dtype=torch.float64)
+        prev_s = [torchpvs.solve(sc, insertion=ins_s[i:i + 1] - torch.tensor([0.0] * (N - 1)
+                                                                               + [1e-4]),
+                                 rotation=rot[i:i + 1], options=opts) for i in range(n)]
+
+        def warm_insertion():
+            for i in range(n):
+                torchpvs.solve(sc, insertion=ins_s[i:i + 1], rotation=rot[i:i + 1],
+                               initial=prev_s[i], options=opts)
+
         def cold():
             for i in range(n):
                 torchpvs.solve(sc, insertion=ins[i:i + 1], rotation=rot[i:i + 1], options=opts)
@@ -90,7 +104,8 @@ def probe(with_envs: bool = False, solves: bool = True, loaded: bool = False) ->
         def warm_b():
             torchpvs.solve(sc, insertion=ins_b, rotation=rot_b, initial=prev_b, options=opts)
 
-        cases = [("B1 warm", warm, n), ("B1 cold", cold, n), ("control step", control, 8),
+        cases = [("B1 warm", warm, n), ("B1 warm insertion step", warm_insertion, n),
+                 ("B1 cold", cold, n), ("control step", control, 8),
                  ("B1024 warm", warm_b, 1024)]
         from torchpvs.kernel import KERNELS
         eq = prev[0]
@@ -158,7 +173,7 @@ def main() -> None:
         if k not in best["new"]:
             continue
         o, n = best["old"][k], best["new"][k]
-        print(f"  {k:<26} {o:8.3f} / {n:8.3f}  ({o / n:.2f}x)")
+        print(f"  {k:<34} {o:8.3f} / {n:8.3f}  ({o / n:.2f}x)")
 
 
 if __name__ == "__main__":

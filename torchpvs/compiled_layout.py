@@ -41,7 +41,7 @@ try:
 except ImportError:      # pragma: no cover - numba is a dependency; see torchpvs.compiled
     numba = None
 
-__all__ = ["layout_and_maps", "layout_maps_arrays"]
+__all__ = ["layout_and_maps", "layout_and_maps_of", "layout_maps_arrays"]
 
 _jit = cached_jit(nogil=True)
 
@@ -370,9 +370,23 @@ def layout_and_maps(tubes: TubeTensors, D: torch.Tensor, A: torch.Tensor, F: tor
         _numpy(tubes.straight.detach().to(dtype), (B, N)),
         _numpy(tubes.coef.detach().to(dtype), (B, N, 3, P)), _numpy(Dn, (B, N)),
         _numpy(A.detach(), (B, N)), _numpy(loaded, (B,)), 1e-12, xg, wg, xq, wq, xm, phi, n)
+    return layout_and_maps_of(out, tubes, D, A, F, M, loaded, disc)
+
+
+def layout_and_maps_of(out: tuple, tubes: TubeTensors, D: torch.Tensor, A: torch.Tensor,
+                       F: torch.Tensor, M: torch.Tensor, loaded: torch.Tensor,
+                       disc: Discretization) -> tuple[Layout, Maps]:
+    """``(lay, maps)`` of :func:`layout_maps_arrays`'s arrays ``out`` for the arguments of
+    :func:`layout_and_maps` (float64 CPU; the minimum section 1e-12 and ``disc``'s tables):
+    what it returns, without computing them again where a compiled caller already did
+    (torchpvs.fused)."""
+    B, N = D.shape
+    P = tubes.coef.shape[-1]
+    tab, _, shared = _constants(disc, P, D.dtype)
     (ell, tau, start, h, present, curved, active, presc, qmask, psi0, gconst, W, tip_tube,
      s_tip, before_l1, sec, psec, cidx, ustar, EIw, EIws, GJw, Hsec, guide, bvec, qmask_c,
      h_c, presc_inc, p_h, p_inc, p_held, p_local) = (torch.from_numpy(x) for x in out)
+    dtype = D.dtype
     lay = Layout(EI=tubes.EI.expand(B, N), GJ=tubes.GJ.expand(B, N), D=D, alpha=A,
                  coef=tubes.coef.expand(B, N, 3, P), tau=tau, ell=ell, start=start, h=h,
                  present=present, curved=curved, active=active, presc=presc, qmask=qmask,

@@ -40,10 +40,10 @@ import torch
 from . import compiled
 from .basis import gauss_legendre
 from .compiled import pose_one, step_one
-from .compiled_layout import layout_maps_arrays
+from .compiled_layout import layout_and_maps_of, layout_maps_arrays
 from .compiled_load import cached_jit
 from .equilibrium import Equilibrium
-from .forces import KINK_DELTA, KINK_TOL, kink_mask, kink_plan
+from .forces import KINK_DELTA, KINK_TOL, kink_mask
 from .kernel import COMPILED, VANISHING
 from .newton import stability_threshold, tolerance
 from .options import SolverOptions
@@ -52,7 +52,7 @@ from .plan import MAGNUS_START, ORDER_START, Plan
 from .predictor import PREDICTOR_TRUST, initial_q
 from .scene import Scene
 from .sections import Discretization, TubeTensors, n_coordinates
-from .tracker import layout_and_track, solve_core
+from .tracker import kink_mask_arrays, kink_sides, layout_and_track, solve_core
 
 __all__ = ["MAX_BATCH", "FusedSolve", "control_blocks", "fused_solve"]
 
@@ -210,16 +210,25 @@ def _constants(scene: Scene, tubes: TubeTensors, opts: SolverOptions):
     return float(tubes.length.max()), consts
 
 
-def _kinks(tubes: TubeTensors, D):
-    """:func:`torchpvs.forces.kink_plan` at ``D`` and its sides as arrays ``(plan, sel, sj,
-    Dn)`` (empty where there is no kink)."""
-    with torch.no_grad():
-        kp = kink_plan(tubes, D, KINK_DELTA, KINK_TOL)
-    if kp.sel is None:
-        N = D.shape[1]
-        return kp, np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros((0, N))
-    c = np.ascontiguousarray
-    return kp, c(kp.sel.numpy()), c(kp.sj.numpy()), c(kp.Dn.numpy())
+def _kinks(tubes: TubeTensors, D: np.ndarray, plan: Plan | None) -> tuple:
+    """The kink analysis of :func:`torchpvs.forces.kink_plan` at insertions ``D (B, N)`` in
+    numpy: ``(kink (B, N), blocked (B, N), sel, sj, Dn, n_retract)``
+    (:func:`torchpvs.tracker.kink_sides`); ``plan``: the plan whose own tubes these are (their
+    arrays are kept on it)."""
+    if tubes.length.shape[0] != 1:       # tubes per row: the torch mask
+        with torch.no_grad():
+            kink = kink_mask(tubes, torch.from_numpy(D), KINK_TOL).numpy()
+        return (kink, *kink_sides(kink, D))
+
+    def arrays():
+        return (np.ascontiguousarray(tubes.length.detach().numpy().reshape(-1)),
+                np.ascontiguousarray(tubes.straight.detach().numpy().reshape(-1)),
+                np.ascontiguousarray(
+                    (tubes.coef.detach().abs().sum((-1, -2)) > 0).numpy().reshape(-1)))
+
+    L, Ls, curved = arrays() if plan is None else plan.static(("fused kink arrays",), arrays)
+    kink = kink_mask_arrays(L, Ls, curved, D)
+    return (kink, *kink_sides(kink, D))
 
 
 def _predictor_arrays(initial, D, A, scene: Scene):
@@ -269,11 +278,16 @@ def fused_solve(scene: Scene, tubes: TubeTensors, D, A, F, M, opts: SolverOption
     loaded = torch.zeros(B, dtype=torch.bool)
     # (outside inference mode: the layout the context keeps is then an ordinary tensor, which
     # Equilibrium.released need not copy)
-    lay, maps = plan.layout(tubes, D, A, F, M, loaded, disc, nq, COMPILED.layout, grad=False)
+    # The plan's layout of these insertions where it keeps one; else the compiled call's own
+    # (the same function of the same inputs) is converted after it, and kept: a cold start's
+    # guess needs it first.
+    kept = plan.kept_layout(tubes, D, A, F, M, loaded, disc, COMPILED.layout)
+    if kept is None and q_init is None:
+        kept = plan.layout(tubes, D, A, F, M, loaded, disc, nq, COMPILED.layout, grad=False)
     tab = disc.tables(dt, D.device)
     if q_init is None:
         with torch.no_grad():
-            q_init = COMPILED.guess(lay, maps, tab, disc, N)
+            q_init = COMPILED.guess(*kept, tab, disc, N)
     P = tubes.coef.shape[-1]
     t0 = _tables(disc, P)
     c = np.ascontiguousarray
@@ -292,8 +306,7 @@ def fused_solve(scene: Scene, tubes: TubeTensors, D, A, F, M, opts: SolverOption
     verdict, U, twist = np.empty(B, dtype=np.int8), np.empty(B), np.empty((B, max(N - 1, 0)))
     forces = opts.compute_forces
     if forces:
-        kp, sel, sj, Dk = plan.cached(disc, lay, ("fused kinks", KINK_DELTA, KINK_TOL),
-                                      lambda: _kinks(tubes, D))
+        kink, blocked, sel, sj, Dk, n_r = _kinks(tubes, Dn, plan if own else None)
         tD, tA, vals = np.empty((B, N)), np.empty((B, N)), np.empty(len(sel))
     else:
         sel, sj, Dk = np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros((0, N))
@@ -304,11 +317,17 @@ def fused_solve(scene: Scene, tubes: TubeTensors, D, A, F, M, opts: SolverOption
         t0.phi_m, t0.Q_m, 1e-6, consts, opts.method == "minimize", opts.max_iter,
         stability_threshold(dt), tip, R, res, it, conv, verdict, forces, tD, tA, sel, sj, Dk,
         VANISHING * length, vals, U, twist)
-    # the layout the context keeps must be the one solved on (same function, same inputs)
-    cidx = lay_k[17]
-    mc = maps.cidx.numpy()
-    if not (conv.all() and cidx.shape == mc.shape and (cidx == mc).all()):
+    if not conv.all():
         return None
+    if kept is None:
+        lay, maps = layout_and_maps_of(lay_k, tubes, D, A, F, M, loaded, disc)
+        plan.keep_layout(tubes, D, A, loaded, disc, lay, maps, COMPILED.layout)
+    else:
+        # the layout the context keeps must be the one solved on (same function, same inputs)
+        lay, maps = kept
+        cidx, mc = lay_k[17], maps.cidx.numpy()
+        if not (cidx.shape == mc.shape and (cidx == mc).all()):
+            return None
     err = est_m = None
     if auto_order or auto_magnus:
         # the driver's order estimate (at order + 1, where the solution's own tip is taken
@@ -360,14 +379,11 @@ def fused_solve(scene: Scene, tubes: TubeTensors, D, A, F, M, opts: SolverOption
     state.magnus_estimate = None if est_m is None else t(est_m)
     out = None
     if forces:
-        kink = kp.kink.clone()
         retract, ins = tD.copy(), tD.copy()
-        ins[kp.blocked.numpy()] = np.nan
-        if kp.sel is not None:
-            n_r = len(kp.rows_b)
-            retract[sel[:n_r], sj[:n_r]] = vals[:n_r]
-            ins[sel[n_r:], sj[n_r:]] = vals[n_r:]
-        out = (t(retract), t(tA), t(ins), kink)
+        ins[blocked] = np.nan
+        retract[sel[:n_r], sj[:n_r]] = vals[:n_r]
+        ins[sel[n_r:], sj[n_r:]] = vals[n_r:]
+        out = (t(retract), t(tA), t(ins), t(kink))
     dofs = lay.qmask.numpy().sum(-1).astype(np.int64)
     return FusedSolve(state, out, t(twist), t(verdict == 1), t(dofs))
 

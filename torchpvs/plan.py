@@ -86,21 +86,38 @@ class Plan:
         if grad is None:
             grad = torch.is_grad_enabled() and any(
                 t.requires_grad for t in (D, A, F, M, *tubes.tensors()))
-        key = (disc, D.shape)
-        memo = self._memo.get(key)
-        if (not grad and memo is not None and memo.D.shape == D.shape
-                and memo.build is build and _same_tubes(memo.tubes, tubes)
-                and torch.equal(memo.D, D) and torch.equal(memo.loaded, loaded)):
-            # psi0 = alpha + (twist of the curved material held in the guide).
-            lay = memo.lay._replace(psi0=memo.psi0_guide + A, alpha=A, force=F, moment=M)
-            return lay, memo.maps._replace(psi0=lay.psi0)
+        if not grad:
+            kept = self.kept_layout(tubes, D, A, F, M, loaded, disc, build)
+            if kept is not None:
+                return kept
         lay, maps = build(tubes, D, A, F, M, loaded, disc, nq)
         if not grad:
-            self._memo[key] = _Memo(D.clone(), loaded.clone(), disc, tubes,
-                                     lay.psi0 - A, lay, maps, build)
-            if len(self._memo) > 4:
-                self._memo.pop(next(iter(self._memo)))
+            self.keep_layout(tubes, D, A, loaded, disc, lay, maps, build)
         return lay, maps
+
+    def kept_layout(self, tubes: TubeTensors, D, A, F, M, loaded, disc: Discretization,
+                    build) -> tuple[Layout, Maps] | None:
+        """What :meth:`layout` returns without building (no gradient): the kept layout of
+        these insertions, loaded mask, discretization, tubes and builder with the angles and
+        loads replaced; None where none is kept."""
+        memo = self._memo.get((disc, D.shape))
+        if (memo is None or memo.D.shape != D.shape or memo.build is not build
+                or not _same_tubes(memo.tubes, tubes) or not torch.equal(memo.D, D)
+                or not torch.equal(memo.loaded, loaded)):
+            return None
+        # psi0 = alpha + (twist of the curved material held in the guide).
+        lay = memo.lay._replace(psi0=memo.psi0_guide + A, alpha=A, force=F, moment=M)
+        return lay, memo.maps._replace(psi0=lay.psi0)
+
+    def keep_layout(self, tubes: TubeTensors, D, A, loaded, disc: Discretization, lay: Layout,
+                    maps: Maps, build) -> None:
+        """Keep ``(lay, maps)``, built by ``build`` at ``(D, A, loaded, disc)`` for ``tubes``
+        without gradient, for :meth:`layout` to reuse (the 4 most recent batch shapes and
+        discretizations)."""
+        self._memo[(disc, D.shape)] = _Memo(D.clone(), loaded.clone(), disc, tubes,
+                                            lay.psi0 - A, lay, maps, build)
+        if len(self._memo) > 4:
+            self._memo.pop(next(iter(self._memo)))
 
     def reused_layout(self, tubes: TubeTensors, D, A, loaded,
                       disc: Discretization) -> Layout | None:

@@ -567,6 +567,34 @@ def _kink_mask(L, Ls, curved, D, tol, kink):
             kink[b, j] = k
 
 
+def kink_sides(kink: np.ndarray, D: np.ndarray) -> tuple:
+    """:func:`torchpvs.forces.kink_plan` in numpy for the kink mask ``kink (B, N)`` at
+    insertions ``D (B, N)``: ``(blocked (B, N), sel, sj, Dn, n_retract)``, every kink ``(sel,
+    sj)`` retracted by ``KINK_DELTA``, then those whose carriage can move in inserted; ``Dn``
+    the sides' insertions (nesting kept), the first ``n_retract`` rows the retraction sides."""
+    prev = np.concatenate([np.zeros_like(D[:, :1]), D[:, :-1]], -1)
+    blocked = D - KINK_DELTA < prev
+    rows_b, rows_j = np.nonzero(kink)
+    can_insert = ~blocked[rows_b, rows_j]
+    sel = np.concatenate([rows_b, rows_b[can_insert]]).astype(np.int64)
+    sj = np.concatenate([rows_j, rows_j[can_insert]]).astype(np.int64)
+    sign = np.concatenate([np.ones(len(rows_b)), -np.ones(int(can_insert.sum()))])
+    Dn = D[sel].copy()
+    Dn[np.arange(len(sel)), sj] += KINK_DELTA * sign
+    Dn = np.ascontiguousarray(np.maximum.accumulate(Dn, axis=-1))
+    return blocked, sel, sj, Dn, len(rows_b)
+
+
+def kink_mask_arrays(L: np.ndarray, Ls: np.ndarray, curved: np.ndarray,
+                     D: np.ndarray) -> np.ndarray:
+    """:func:`torchpvs.forces.kink_mask` ``(B, N)`` of one robot's tubes (lengths ``L``,
+    straight lengths ``Ls`` [m], ``curved`` flags, each ``(N,)``) at insertions ``D (B,
+    N)``, in one compiled call."""
+    kink = np.empty(D.shape, dtype=np.bool_)
+    _kink_mask(L, Ls, curved, D, KINK_TOL, kink)
+    return kink
+
+
 # the fewest rows a thread of Tracker.solve_from takes (below it the thread's start costs
 # more than the rows)
 _MIN_CHUNK = 16
@@ -887,11 +915,8 @@ class Tracker:
 
     def _kinks(self, D: np.ndarray) -> np.ndarray:
         """``(B, N)`` bool: :func:`torchpvs.forces.kink_mask` at ``D`` (compiled)."""
-        kink = np.empty(D.shape, dtype=np.bool_)
         tb = self._tubes
-        _kink_mask(tb.length.reshape(-1), tb.straight.reshape(-1), self._curved, D, KINK_TOL,
-                   kink)
-        return kink
+        return kink_mask_arrays(tb.length.reshape(-1), tb.straight.reshape(-1), self._curved, D)
 
     def _kink_side(self, D: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """``(side (B,) int8, D_side (B, N))``: the rows whose insertions sit at a kink of
@@ -918,17 +943,7 @@ class Tracker:
         if last_D is not None and np.array_equal(last_D, D):
             return plan
         kink = self._kinks(D)
-        prev = np.concatenate([np.zeros_like(D[:, :1]), D[:, :-1]], -1)
-        blocked = D - KINK_DELTA < prev
-        rows_b, rows_j = np.nonzero(kink)
-        can_insert = ~blocked[rows_b, rows_j]
-        sel = np.concatenate([rows_b, rows_b[can_insert]]).astype(np.int64)
-        sj = np.concatenate([rows_j, rows_j[can_insert]]).astype(np.int64)
-        sign = np.concatenate([np.ones(len(rows_b)), -np.ones(int(can_insert.sum()))])
-        Dn = D[sel].copy()
-        Dn[np.arange(len(sel)), sj] += KINK_DELTA * sign
-        Dn = np.ascontiguousarray(np.maximum.accumulate(Dn, axis=-1))
-        plan = (kink, blocked, sel, sj, Dn, len(rows_b))
+        plan = (kink, *kink_sides(kink, D))
         self._force_plan = (D.copy(), plan)
         return plan
 
