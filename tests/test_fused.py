@@ -25,6 +25,8 @@ from torchpvs.plan import Plan, plan_for
 from torchpvs.testing import (
     assert_same_equilibria,
     feasible_actuations,
+    fig3,
+    nested_scene,
     random_scene,
     spy_results,
 )
@@ -224,3 +226,36 @@ def test_compiled_control_blocks_equal_the_torch_closed_forms(case):
         tm_ = tp.solve(sc, insertion=D, rotation=A - e, initial=eq, options=opts).tip_position
         fd = (tp_ - tm_) / (2 * h)
         assert float((J[:, :3, N + j] - fd).abs().max()) <= 1e-6 * float(fd.abs().max()) + 1e-12
+
+
+@pytest.mark.parametrize("scene_fn", [fig3, lambda: nested_scene(3, seed=2)],
+                         ids=["fig3", "three_tubes"])
+def test_the_compiled_kink_plan_is_the_torch_one(scene_fn):
+    """The fused path's (and the tracker's) kink analysis, a compiled mask and compiled sides
+    (``fused._kinks``, ``tracker.kink_sides``), against ``forces.kink_plan`` in torch, which
+    the rounds use: the same kink mask, blocked carriages, side rows and side insertions, bit
+    for bit, at insertions that put every tube's base, straight-to-curved transition and end
+    at the orifice, bases blocked by the next one, and ordinary insertions."""
+    from torchpvs.forces import KINK_DELTA, KINK_TOL, kink_plan
+    scene = scene_fn()
+    plan = plan_for(scene, torch.float64, torch.device("cpu"))
+    tubes = plan.tubes
+    L = tubes.length.numpy().reshape(-1)
+    Ls = tubes.straight.numpy().reshape(-1)
+    rng = np.random.default_rng(4)
+    N = scene.n_tubes
+    special = np.concatenate([[0.0], L, Ls, L - 1e-8, Ls + 1e-8])
+    D = rng.choice(special, size=(200, N))
+    D[::3] = rng.uniform(0.0, L.min(), size=D[::3].shape)
+    D = np.minimum(np.maximum.accumulate(D, -1), L)            # the nesting rule
+    D[5, 1:] = D[5, 0]                                         # blocked bases
+    D = np.ascontiguousarray(np.maximum.accumulate(D, -1))
+    kink, blocked, sel, sj, Dn, n_r = fused_mod._kinks(tubes, D, plan)
+    kp = kink_plan(tubes, torch.from_numpy(D), KINK_DELTA, KINK_TOL)
+    assert kink.any() and blocked.any() and n_r > 0
+    np.testing.assert_array_equal(kink, kp.kink.numpy())
+    np.testing.assert_array_equal(blocked, kp.blocked.numpy())
+    np.testing.assert_array_equal(sel, kp.sel.numpy())
+    np.testing.assert_array_equal(sj, kp.sj.numpy())
+    np.testing.assert_array_equal(Dn, kp.Dn.numpy())
+    assert n_r == len(kp.rows_b)

@@ -306,7 +306,11 @@ def fused_solve(scene: Scene, tubes: TubeTensors, D, A, F, M, opts: SolverOption
     verdict, U, twist = np.empty(B, dtype=np.int8), np.empty(B), np.empty((B, max(N - 1, 0)))
     forces = opts.compute_forces
     if forces:
-        kink, blocked, sel, sj, Dk, n_r = _kinks(tubes, Dn, plan if own else None)
+        # (kept with a kept layout: the same insertions)
+        kink, blocked, sel, sj, Dk, n_r = (
+            _kinks(tubes, Dn, plan if own else None) if kept is None else
+            plan.cached(disc, kept[0], ("fused kinks", KINK_DELTA, KINK_TOL),
+                        lambda: _kinks(tubes, Dn, plan if own else None)))
         tD, tA, vals = np.empty((B, N)), np.empty((B, N)), np.empty(len(sel))
     else:
         sel, sj, Dk = np.zeros(0, dtype=np.int64), np.zeros(0, dtype=np.int64), np.zeros((0, N))

@@ -568,21 +568,46 @@ def _kink_mask(L, Ls, curved, D, tol, kink):
 
 
 def kink_sides(kink: np.ndarray, D: np.ndarray) -> tuple:
-    """:func:`torchpvs.forces.kink_plan` in numpy for the kink mask ``kink (B, N)`` at
-    insertions ``D (B, N)``: ``(blocked (B, N), sel, sj, Dn, n_retract)``, every kink ``(sel,
-    sj)`` retracted by ``KINK_DELTA``, then those whose carriage can move in inserted; ``Dn``
-    the sides' insertions (nesting kept), the first ``n_retract`` rows the retraction sides."""
-    prev = np.concatenate([np.zeros_like(D[:, :1]), D[:, :-1]], -1)
-    blocked = D - KINK_DELTA < prev
-    rows_b, rows_j = np.nonzero(kink)
-    can_insert = ~blocked[rows_b, rows_j]
-    sel = np.concatenate([rows_b, rows_b[can_insert]]).astype(np.int64)
-    sj = np.concatenate([rows_j, rows_j[can_insert]]).astype(np.int64)
-    sign = np.concatenate([np.ones(len(rows_b)), -np.ones(int(can_insert.sum()))])
-    Dn = D[sel].copy()
-    Dn[np.arange(len(sel)), sj] += KINK_DELTA * sign
-    Dn = np.ascontiguousarray(np.maximum.accumulate(Dn, axis=-1))
-    return blocked, sel, sj, Dn, len(rows_b)
+    """:func:`torchpvs.forces.kink_plan` for the kink mask ``kink (B, N)`` at insertions ``D
+    (B, N)`` (compiled: its numpy form is a dozen calls, about 50 us at B = 1): ``(blocked (B,
+    N), sel, sj, Dn, n_retract)``, every kink ``(sel, sj)`` retracted by ``KINK_DELTA``, then
+    those whose carriage can move in inserted; ``Dn`` the sides' insertions (nesting kept),
+    the first ``n_retract`` rows the retraction sides."""
+    return _kink_sides(kink, np.ascontiguousarray(D, dtype=np.float64), KINK_DELTA)
+
+
+@cached_jit(nogil=True)
+def _kink_sides(kink, D, delta):
+    B, N = D.shape
+    blocked = np.empty((B, N), dtype=np.bool_)
+    n_r = 0
+    n_i = 0
+    for b in range(B):
+        for j in range(N):
+            prev = D[b, j - 1] if j > 0 else 0.0
+            blocked[b, j] = D[b, j] - delta < prev
+            if kink[b, j]:
+                n_r += 1
+                if not blocked[b, j]:
+                    n_i += 1
+    sel = np.empty(n_r + n_i, dtype=np.int64)
+    sj = np.empty(n_r + n_i, dtype=np.int64)
+    r = 0
+    for side in range(2):           # the retraction sides, then the insertion sides
+        for b in range(B):
+            for j in range(N):
+                if kink[b, j] and (side == 0 or not blocked[b, j]):
+                    sel[r] = b
+                    sj[r] = j
+                    r += 1
+    Dn = np.empty((n_r + n_i, N), dtype=D.dtype)
+    for r in range(n_r + n_i):
+        for k in range(N):
+            Dn[r, k] = D[sel[r], k]
+        Dn[r, sj[r]] += delta * (1.0 if r < n_r else -1.0)
+        for k in range(1, N):       # a base moved past the next one's moves it along
+            Dn[r, k] = max(Dn[r, k - 1], Dn[r, k])
+    return blocked, sel, sj, Dn, n_r
 
 
 def kink_mask_arrays(L: np.ndarray, Ls: np.ndarray, curved: np.ndarray,
