@@ -805,14 +805,16 @@ def newton_one(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, ph
         N = psi0.shape[0]
         ne = active_extent(qm, EIw, EIws, GJw, Hsec, N, (2 + N) * phi.shape[1])
     if ne == nc:
-        _newton_core(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb,
-                     ld, Lc, consts, minimize, max_iter, H, g, out)
+        qe, qme, He, ge = q, qm, H, g
+    else:
+        qe, qme = q[:ne].copy(), qm[:ne].copy()
+        He = np.empty((ne, ne), dtype=q.dtype)
+        ge = np.empty(ne, dtype=q.dtype)
+    # (one call site: numba compiles and optimizes the Newton once per caller)
+    _newton_core(qe, qme, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb,
+                 ld, Lc, consts, minimize, max_iter, He, ge, out)
+    if ne == nc:
         return
-    qe = q[:ne].copy()
-    He = np.empty((ne, ne), dtype=q.dtype)
-    ge = np.empty(ne, dtype=q.dtype)
-    _newton_core(qe, qm[:ne].copy(), psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst,
-                 phi, Qb, ld, Lc, consts, minimize, max_iter, He, ge, out)
     for i in range(ne):
         q[i] = qe[i]
         g[i] = ge[i]
