@@ -26,13 +26,13 @@ The continuation then goes on from that branch.
 from __future__ import annotations
 
 import math
-import time
 from collections.abc import Mapping
 from dataclasses import dataclass, replace
 from typing import Any
 
 import torch
 
+from .clock import work_clock
 from .equilibrium import Equilibrium
 from .options import SolverOptions, check_time_limit, within_deadline
 from .scene import Scene, load_scene
@@ -249,7 +249,7 @@ def continuation(scene: Scene | str, path: Any, *, options: SolverOptions | None
     quiet = replace(opts, on_failure="ignore")
     n_solves = 0
 
-    t_start = time.perf_counter()
+    t_start = work_clock()
     check_time_limit(time_limit)
     deadline = None if time_limit is None else t_start + time_limit
 
@@ -301,7 +301,7 @@ def continuation(scene: Scene | str, path: Any, *, options: SolverOptions | None
     h = max_step
     complete, why = True, "complete"
     while direction * (s1 - s) > 1e-14:
-        if deadline is not None and time.perf_counter() > deadline:
+        if deadline is not None and work_clock() > deadline:
             complete, why = False, (f"time limit time_limit={time_limit:g} s reached at s = "
                                     f"{s:.6g} of {s1:g} after {n_solves} solves")
             break

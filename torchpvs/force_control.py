@@ -45,12 +45,12 @@ is positive definite iff both are; the common-rotation zero mode is excluded as 
 from __future__ import annotations
 
 import math
-import time
 import warnings
 from dataclasses import dataclass, replace
 
 import torch
 
+from .clock import work_clock
 from .equilibrium import Equilibrium
 from .inputs import scene_inputs
 from .jacobians import actuator_stiffness, control_jacobians
@@ -240,7 +240,7 @@ def solve_force_controlled(
     Returns:
         :class:`ForceControlled`.
     """
-    t_start = time.perf_counter()
+    t_start = work_clock()
     check_time_limit(time_limit)
     deadline = None if time_limit is None else t_start + time_limit
     if not isinstance(scene, Scene):
@@ -347,7 +347,7 @@ def solve_force_controlled(
         active = ~done & ~failed
         if not bool(active.any()):
             break
-        if deadline is not None and time.perf_counter() > deadline:
+        if deadline is not None and work_clock() > deadline:
             timed_out = True
             break
         x_try, block, s_ref = _trial(x, K, r, S, free, mu, s_ref, active, max_step)
@@ -438,7 +438,7 @@ def solve_force_controlled(
     # final equilibrium at the accepted actuation (warm: no Newton iterations)
     eqs = solve(scene, insertion=x[:, :N], rotation=x[:, N:], tip_force=F, tip_moment=M,
                 options=within_deadline(inner, None if deadline is None else
-                                        max(deadline, time.perf_counter())
+                                        max(deadline, work_clock())
                                         + 0.1 * time_limit), initial=q)
     margin, tiny = _stiffness_margin(K, S, free, common_free)
     stable = eqs.stable & (margin > tiny)

@@ -23,11 +23,11 @@ from __future__ import annotations
 
 import hashlib
 import math
-import time
 from dataclasses import dataclass
 
 import torch
 
+from .clock import work_clock
 from .inputs import check_actuation
 from .jacobians import tip_jacobian
 from .options import SolverOptions, check_time_limit, within_deadline
@@ -92,7 +92,7 @@ def inverse_kinematics(scene: Scene | str, goal, *, starts: int = 8, tol: float 
         time_limit: [s] wall-clock bound on the whole call (default 120 s; ``None``: none):
             checked before every iteration, and every solve is bounded by what is left.
     """
-    t_start = time.perf_counter()
+    t_start = work_clock()
     scene = scene if isinstance(scene, Scene) else load_scene(scene)
     check_time_limit(time_limit)
     if not (isinstance(starts, int) and starts >= 1):
@@ -196,7 +196,7 @@ def inverse_kinematics(scene: Scene | str, goal, *, starts: int = 8, tol: float 
     deadline = None if time_limit is None else t_start + time_limit
     timed_out = False
     for it in range(max_iter + 1):
-        if deadline is not None and time.perf_counter() > deadline:
+        if deadline is not None and work_clock() > deadline:
             timed_out = True
             break
         # Solve at the trial actuations.
@@ -240,7 +240,7 @@ def inverse_kinematics(scene: Scene | str, goal, *, starts: int = 8, tol: float 
     xD, xA = torch.where(worse[:, None], kD, xD), torch.where(worse[:, None], kA, xA)
     final = solve(scene, insertion=xD, rotation=xA,
                   options=within_deadline(opts, None if deadline is None
-                                          else max(deadline, time.perf_counter())
+                                          else max(deadline, work_clock())
                                           + 0.1 * time_limit))
     err = (target - final.tip_position).norm(dim=-1)
     ok = (err < tol) & final.converged & final.stable

@@ -16,12 +16,12 @@ batch spends its time:
 
 from __future__ import annotations
 
-import time
 from typing import TYPE_CHECKING, NamedTuple
 
 import torch
 
 from .batch_linalg import active_index, chunked, compact, compact_scaled, expand, take
+from .clock import work_clock
 from .mechanics import (
     Maps,
     compact_q,
@@ -211,8 +211,8 @@ def newton(q: torch.Tensor, prob: Problem, L_char: torch.Tensor, *, method: str,
     (capped steps), converging to the nearest stationary point, stable or not.
 
     A batch whose Hessians exceed ``CHUNK_BYTES`` is solved in cache-sized chunks (:func:`chunked`).
-    ``deadline``: a ``time.perf_counter()`` time after which no further step is taken (the
-    elements not converged by then are returned as such, with their residual).
+    ``deadline``: a :func:`~torchpvs.clock.work_clock` time after which no further step is
+    taken (the elements not converged by then are returned as such, with their residual).
     """
     nq, cidx = q.shape[-1], prob.maps.cidx
     qc, H, g, *rest = chunked(_newton, compact_q(q, cidx), prob, L_char, method=method,
@@ -269,7 +269,7 @@ def _newton(q: torch.Tensor, prob: Problem, L_char: torch.Tensor, *, method: str
         converged[idx] = conv
         todo = ~conv & torch.isfinite(q).all(-1)
         n_todo = int(todo.sum())
-        if n_todo == 0 or (deadline is not None and time.perf_counter() > deadline):
+        if n_todo == 0 or (deadline is not None and work_clock() > deadline):
             # (past the deadline: no further step; the state, residual and flags are this
             # iteration's, as at max_iter)
             if U is not None:

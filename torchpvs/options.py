@@ -4,12 +4,12 @@ from __future__ import annotations
 
 import math
 import numbers
-import time
 from dataclasses import dataclass, replace
 
 import numpy as np
 import torch
 
+from .clock import work_clock
 from .kernel import KERNELS
 from .plan import MAGNUS_START
 from .sections import Discretization
@@ -111,7 +111,8 @@ class SolverOptions:
             load step and Magnus refinement; ``None`` = no bound). Checked before every Newton
             step, so a call overshoots by at most one iteration plus the outputs (forces,
             pose). When it is reached the solve stops like ``max_total_iter``: unfinished
-            elements are not converged and their reason says so.
+            elements are not converged and their reason says so. Time numba spends compiling
+            kernels on their first use is not counted (:func:`torchpvs.clock.work_clock`).
     """
 
     accuracy: float = 1e-5
@@ -204,11 +205,12 @@ def check_time_limit(time_limit, name: str = "time_limit") -> float | None:
 
 def within_deadline(opts: SolverOptions, deadline: float | None) -> SolverOptions:
     """``opts`` with its ``time_limit`` cut to what is left before ``deadline`` (a
-    ``time.perf_counter()`` value; ``None``: unchanged), so that a call made of many solves
-    keeps its own bound. At least 1 ms, so that an expired call still returns a verdict."""
+    :func:`~torchpvs.clock.work_clock` value; ``None``: unchanged), so that a call made of many
+    solves keeps its own bound. At least 1 ms, so that an expired call still returns a
+    verdict."""
     if deadline is None:
         return opts
-    left = max(deadline - time.perf_counter(), 1e-3)
+    left = max(deadline - work_clock(), 1e-3)
     limit = left if opts.time_limit is None else min(opts.time_limit, left)
     return replace(opts, time_limit=limit)
 

@@ -6,12 +6,12 @@ kernel's (:mod:`torchpvs.kernel`)."""
 
 from __future__ import annotations
 
-import time
 from dataclasses import dataclass, replace
 from typing import TYPE_CHECKING
 
 import torch
 
+from .clock import work_clock
 from .kernel import EAGER, KERNELS, Kernel
 from .mechanics import Maps, pose_node_constants
 from .newton import Problem
@@ -111,8 +111,8 @@ def solve_order(scene, tubes, D, A, F, M, order, n_magnus, opts, q_init, plan: P
                 pose: bool = True, deadline: float | None = None) -> SolveState:
     """Newton at one discretization: its :class:`SolveState`. ``pose=False``: without the tip
     pose (``tip``, ``R``) and its finiteness in ``converged``; :func:`order_estimate` then adds
-    them. ``deadline``: a ``time.perf_counter()`` time after which the kernel takes no further
-    step."""
+    them. ``deadline``: a :func:`~torchpvs.clock.work_clock` time after which the kernel takes
+    no further step."""
     kernel = KERNELS[opts.kernel]
     disc = replace(opts.discretization(order), n_magnus=n_magnus)
     N = scene.n_tubes
@@ -262,18 +262,18 @@ def loaded_rows(F, M, opts: SolverOptions) -> torch.Tensor:
 
 class Work:
     """Newton iterations spent by one call (the slowest element of each kernel call) and its
-    wall-clock deadline (``time.perf_counter()`` time, or None)."""
+    wall-clock deadline (a :func:`torchpvs.clock.work_clock` time, or None)."""
 
     def __init__(self, limit: int, time_limit: float | None = None):
         self.limit, self.spent = limit, 0
-        self.deadline = None if time_limit is None else time.perf_counter() + time_limit
+        self.deadline = None if time_limit is None else work_clock() + time_limit
 
     def spend(self, res: SolveState) -> None:
         self.spent += int(res.iterations.max()) if res.iterations.numel() else 0
 
     @property
     def timed_out(self) -> bool:
-        return self.deadline is not None and time.perf_counter() > self.deadline
+        return self.deadline is not None and work_clock() > self.deadline
 
     @property
     def exhausted(self) -> bool:

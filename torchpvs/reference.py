@@ -94,6 +94,7 @@ from scipy.integrate import solve_ivp
 from scipy.linalg import eig_banded
 from scipy.optimize import root
 
+from .clock import work_clock
 from .scene import Scene, load_scene
 
 __all__ = ["StandardSolution", "solve_standard"]
@@ -512,7 +513,7 @@ class _Shot:
 def _shoot(prob: _Problem, x0: np.ndarray, tol: float,
            deadline: float | None = None) -> _Shot:
     """Solve the boundary value problem from scaled unknowns ``x0`` (stopping at the first
-    residual evaluation after ``deadline``, a ``time.perf_counter()`` value)."""
+    residual evaluation after ``deadline``, a :func:`~torchpvs.clock.work_clock` value)."""
     conv_tol = _conv_tol(tol)
     xtol = min(tol, 1e-10)
     nfev = 0
@@ -521,7 +522,7 @@ def _shoot(prob: _Problem, x0: np.ndarray, tol: float,
 
     def fun(x: np.ndarray) -> np.ndarray:
         nonlocal nfev
-        if deadline is not None and nfev > 0 and time.perf_counter() > deadline:
+        if deadline is not None and nfev > 0 and work_clock() > deadline:
             raise _OutOfTime
         nfev += 1
         m0, mb = prob.unpack(x)
@@ -713,7 +714,7 @@ def solve_standard(scene: Scene | Any, *, tol: float = 1e-10, initial: Any = Non
                          f"got {time_limit!r}")
     t0 = time.perf_counter()
     res = _equilibrium(prob, x0, tol, dense=True,
-                       deadline=None if time_limit is None else t0 + time_limit)
+                       deadline=None if time_limit is None else work_clock() + time_limit)
     solve_time = time.perf_counter() - t0
 
     N = prob.N
