@@ -745,3 +745,29 @@ def test_a_one_thread_batch_solve_launches_no_numba_thread_pool():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True,
                          check=True, env=dict(os.environ, OMP_NUM_THREADS="1"))
     assert out.stdout.split()[-2:] == ["no", "pool"], out.stdout
+
+
+def test_each_kernel_is_compiled_once_for_the_default_solve_and_the_tracker():
+    """First use is numba's compile time (docs/performance.md, *First use*): a kernel called
+    with an int literal is compiled once per literal value and once more for a variable, and
+    a readonly array (a broadcast view) is another type than a writable one, so either
+    compiles a kernel, with everything it calls, a second time. After a default solve, its
+    control step and a tracker step (the environments' call), no signature of the energy, the
+    precurvature polynomials, the layout or the solve core holds a literal or a readonly
+    array."""
+    from torchpvs import compiled_layout, tracker
+
+    scene = fig3()
+    eq = tp.solve(scene, rotation=torch.tensor([0.0, 1.0], dtype=DT))
+    eq.jacobians(compliance=False)
+    tr = tp.Tracker(scene, rotation=np.array([0.0, 1.0]), initial=eq)
+    tr.step(tr._D.copy(), np.array([0.0, 1.02]), jacobians=True, forces=True, margin=True)
+    kernels = (compiled.evaluate, compiled.total, compiled.horner, compiled.horner_derivative,
+               compiled_layout._horner_zero, compiled_layout.layout_maps_arrays,
+               tracker.solve_core)
+    for k in kernels:
+        assert k.signatures, k.py_func.__name__
+        for sig in k.signatures:
+            for t in sig:
+                name = f"{k.py_func.__name__}{sig}"
+                assert "Literal" not in str(t) and "readonly" not in str(t), name

@@ -29,12 +29,12 @@ counts per batch). The energy at the solution is left to the driver (eager, bit 
 from __future__ import annotations
 
 import math
-import time
 import warnings
 
 import numpy as np
 import torch
 
+from .clock import work_clock
 from .compiled_load import cached_jit, load_work, mat4
 from .mechanics import compact_q, expand_q
 from .newton import NewtonResult, Problem, tolerance
@@ -55,6 +55,14 @@ _PARALLEL_FROM = 8
 
 # Below this imaginary part, cosh(b) rounds to 1 and sinh(b) to b in float64.
 _TINY_IMAG = 1e-9
+
+# Constant orders (evaluate, total) and components (horner) passed as int64, not as Python
+# ints: numba compiles a function called with an int literal once per value, and once more
+# where the same argument is a variable (evaluate at orders 0, 2 and 3 was compiled three
+# times, about 4 s each, on first use; numba's compile events). Global numpy ints are typed
+# int64, one specialization for all.
+_E0, _E2, _E3 = np.int64(0), np.int64(2), np.int64(3)
+_C0, _C1, _C2 = np.int64(0), np.int64(1), np.int64(2)
 
 
 def cos_sin(x):
@@ -174,7 +182,7 @@ def solve(q: torch.Tensor, prob: Problem, L_char: torch.Tensor, *, method: str, 
     compiled; None where the compiled kernel does not apply (see the module docstring: the
     caller then runs the eager kernel)."""
     if (not _applicable(q, prob) or method not in ("minimize", "root")
-            or (deadline is not None and time.perf_counter() > deadline)):
+            or (deadline is not None and work_clock() > deadline)):
         return None
     dtype = q.dtype
     npt = np.float64 if dtype == torch.float64 else np.float32
@@ -790,7 +798,15 @@ def active_extent(qm, EIw, EIws, GJw, Hsec, N, Cn):
     return min(N + used * Cn, nc)
 
 
-@_jit
+# The Newton's two wrappers are inlined into their callers by numba (``inline="always"``: at
+# numba's IR, before typing, so no compiled function of their own): numba optimizes and emits
+# the machine code of each compiled function together with everything it calls, so every
+# wrapper level around the Newton cost its whole tree again on first use (3.5-6 s a level,
+# numba's compile events).
+_inline = cached_jit(nogil=True, inline="always")
+
+
+@_inline
 def newton_one(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb, ld,
                Lc, consts, minimize, max_iter, H, g, out):
     """One element's damped Newton (newton._newton). q and H, g are overwritten with the
@@ -858,7 +874,7 @@ def _newton_core(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, 
     converged = False
     for _ in range(max_iter + 1):
         U = total(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb, ld,
-                  2, g, H)
+                  _E2, g, H)
         U_known = minimize
         for i in range(nc):
             H[i, i] += 1.0 - qm[i]
@@ -886,19 +902,20 @@ def _newton_core(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, 
                     sign = -1.0 if slope > 0 else 1.0
                     den = max(vmax * Lc, 1e-30)
                     f0 = total(q, qm, psi0, bvec, h, us, EIw, EIws, GJw,
-                               Hsec, guide, gconst, phi, Qb, ld, 0, dummy_g, dummy_H)
+                               Hsec, guide, gconst, phi, Qb, ld, _E0, dummy_g, dummy_H)
                     t = 1.0
                     for _k in range(40):
                         for i in range(nc):
                             trial[i] = q[i] + t * (sign * step[i] / den)
                         f = total(trial, qm, psi0, bvec, h, us, EIw, EIws, GJw,
-                                  Hsec, guide, gconst, phi, Qb, ld, 0, dummy_g, dummy_H)
+                                  Hsec, guide, gconst, phi, Qb, ld, _E0, dummy_g, dummy_H)
                         if f < f0:
                             left = True
                             break
                         t = 0.5 * t
                     if left:
-                        q[:] = trial
+                        for i in range(nc):     # (a loop: no shape-checked copy to compile)
+                            q[i] = trial[i]
                         escapes += 1
                         U_known = False
             if not left:
@@ -956,9 +973,10 @@ def _newton_core(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, 
             accepted = True
             if not trust:
                 f0 = U if U_known else total(q, qm, psi0, bvec, h, us, EIw, EIws, GJw,
-                                             Hsec, guide, gconst, phi, Qb, ld, 0, dummy_g, dummy_H)
+                                             Hsec, guide, gconst, phi, Qb, ld, _E0, dummy_g,
+                                             dummy_H)
                 f = total(trial, qm, psi0, bvec, h, us, EIw, EIws, GJw,
-                          Hsec, guide, gconst, phi, Qb, ld, 0, dummy_g, dummy_H)
+                          Hsec, guide, gconst, phi, Qb, ld, _E0, dummy_g, dummy_H)
                 accepted = armijo(f, f0, 1.0, slope, eps, tiny)
                 if not accepted:
                     t = 0.5
@@ -967,7 +985,7 @@ def _newton_core(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, 
                         for i in range(nc):
                             best[i] = q[i] + t * step[i]
                         f = total(best, qm, psi0, bvec, h, us, EIw, EIws, GJw,
-                                  Hsec, guide, gconst, phi, Qb, ld, 0, dummy_g, dummy_H)
+                                  Hsec, guide, gconst, phi, Qb, ld, _E0, dummy_g, dummy_H)
                         if armijo(f, f0, t, slope, eps, tiny):
                             done = True
                             break
@@ -975,7 +993,8 @@ def _newton_core(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, 
                     if not done:
                         for i in range(nc):
                             best[i] = q[i] + t * step[i]
-                    trial[:] = best
+                    for i in range(nc):
+                        trial[i] = best[i]
             if accepted:
                 lam = lam * 0.1
                 if lam < 1e-2:
@@ -1004,7 +1023,7 @@ def step_one(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi,
     x = np.empty(nc, dtype=dt)
     rhs = np.empty(nc, dtype=dt)
     sc = np.empty(nc, dtype=dt)
-    total(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb, ld, 2, g, H)
+    total(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb, ld, _E2, g, H)
     for i in range(nc):
         H[i, i] += 1.0 - qm[i]
         rhs[i] = -g[i]
@@ -1024,7 +1043,8 @@ def step_one(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi,
         x[i] = q[i] + x[i] * qm[i]
     good = good and all_finite(x)
     if good:
-        q[:] = x
+        for i in range(nc):
+            q[i] = x[i]
     return good
 
 
@@ -1055,7 +1075,7 @@ def section_step_one(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gcon
     dt = q.dtype
     g = np.empty(nc, dtype=dt)
     H = np.empty((nc, nc), dtype=dt)
-    evaluate(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb, 3, g, H)
+    evaluate(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb, _E3, g, H)
     off = N + sec * Cn
     A = np.zeros((Cn, Cn), dtype=dt)
     L = np.zeros((Cn, Cn), dtype=dt)
@@ -1099,7 +1119,7 @@ def _section_parallel(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gco
                                  GJw[b], Hsec[b], guide[b], gconst[b], phi, Qb, new[b], hmax)
 
 
-@_jit
+@_inline
 def newton_into(b, q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb, LD,
                 Lc, consts, minimize, max_iter, H, g, U, res, it, conv, verdict):
     out = np.empty(5, dtype=q.dtype)
@@ -1306,10 +1326,10 @@ def partials_core(q, Dc, dA, qmask, D, L, Ls, EI, GJ, coef, tau, psi0, start, h,
     for j in range(N):
         w = q[j] * qmask[j]
         tg, tg_r, dtg = guide_curved(D, L, Ls, Dc, j)
-        ugx = horner(coef, j, 0, tg)
-        ugy = horner(coef, j, 1, tg)
+        ugx = horner(coef, j, _C0, tg)
+        ugy = horner(coef, j, _C1, tg)
         tau_D[j] = 0.5 * GJ[j] * w * w + 0.5 * EI[j] * (ugx * ugx + ugy * ugy) * dtg
-        g0[j] = w + horner(coef, j, 2, tg) * dtg
+        g0[j] = w + horner(coef, j, _C2, tg) * dtg
         psi_start[j] = (psi0[j] + dA[j] + horner_integral(coef, j, tg)
                         - horner_integral(coef, j, tg_r) + Dc[j] * w)
         tau_A[j] = 0.0
@@ -1391,9 +1411,9 @@ def partials_core(q, Dc, dA, qmask, D, L, Ls, EI, GJ, coef, tau, psi0, start, h,
                 Gp[j] += gpsi
                 s_loc += gpsi * 0.5 * locq[j]
                 t = s_node + ntau[j]
-                dx = horner_derivative(coef, j, 0, t) * curved[k, j]
-                dy = horner_derivative(coef, j, 1, t) * curved[k, j]
-                dz = horner_derivative(coef, j, 2, t) * curved[k, j]
+                dx = horner_derivative(coef, j, _C0, t) * curved[k, j]
+                dy = horner_derivative(coef, j, _C1, t) * curved[k, j]
+                dz = horner_derivative(coef, j, _C2, t) * curved[k, j]
                 px = cs[j] * dx - sn[j] * dy
                 py = sn[j] * dx + cs[j] * dy
                 gstar = -Wki * (EIp * (ex * px + ey * py) + GJp * tors * dz)
@@ -1664,7 +1684,11 @@ def exp_right_any(g, om, small, E, tmp):
             if j == 3:
                 acc += g[i, 3]
             tmp[i, j] = acc
-    g[:, :] = tmp
+    # (element by element: an array assignment compiles numba's shape check and its error
+    # message, about 1.5 s of first use)
+    for i in range(4):
+        for j in range(4):
+            g[i, j] = tmp[i, j]
 
 
 @_jit
@@ -1727,8 +1751,8 @@ def tip_twist_core(q, Dc, dA, qmask, D, L, Ls, coef, tau, psi0, start, h, presen
                     lq += q[f] * qmask[f] * Qb[gg, p]
                 ps = (psi[j] + 0.5 * hk * lq
                       + (horner_integral(coef, j, t) - Z0[j]) * curved[k, j] * presc[k])
-                usx = horner(coef, j, 0, t) * curved[k, j]
-                usy = horner(coef, j, 1, t) * curved[k, j]
+                usx = horner(coef, j, _C0, t) * curved[k, j]
+                usy = horner(coef, j, _C1, t) * curved[k, j]
                 cs, sn = cos_sin(ps)
                 ux += held * (cs * usx - sn * usy)
                 uy += held * (sn * usx + cs * usy)
@@ -2126,8 +2150,8 @@ def _tip_chain_q(q, qmask, D, coef, tau, psi0, start, h, present, curved, presc,
                     dps[f] += 0.5 * hk * Qb[gg, p] * qmask[f]
                 ps = (psi[j] + 0.5 * hk * lq
                       + (horner_integral(coef, j, t) - Z0[j]) * curved[k, j] * presc[k])
-                usx = horner(coef, j, 0, t) * curved[k, j]
-                usy = horner(coef, j, 1, t) * curved[k, j]
+                usx = horner(coef, j, _C0, t) * curved[k, j]
+                usy = horner(coef, j, _C1, t) * curved[k, j]
                 cs = math.cos(ps)
                 sn = math.sin(ps)
                 rx = held * (cs * usx - sn * usy)

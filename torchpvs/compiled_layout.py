@@ -44,6 +44,8 @@ except ImportError:      # pragma: no cover - numba is a dependency; see torchpv
 __all__ = ["layout_and_maps", "layout_and_maps_of", "layout_maps_arrays"]
 
 _jit = cached_jit(nogil=True)
+# components as int64, not int literals: one compiled specialization (see compiled's _C0)
+_C0, _C1 = np.int64(0), np.int64(1)
 
 
 @_jit
@@ -143,8 +145,8 @@ def _layout_one(b, EI, GJ, L, Ls, coef, D, A, loaded, min_section, xg, wg, wq, n
         acc = 0.0
         for g in range(G):
             t = 0.5 * (xg[g] + 1.0) * tg
-            ux = _horner_zero(coef[b], j, 0, t)
-            uy = _horner_zero(coef[b], j, 1, t)
+            ux = _horner_zero(coef[b], j, _C0, t)
+            uy = _horner_zero(coef[b], j, _C1, t)
             acc += (ux * ux + uy * uy) * wg[g]
         total += 0.5 * EI[b, j] * (0.5 * tg) * acc
         if ell[b, j] > emax:

@@ -433,6 +433,15 @@ def _column3(V, dOm, k, c):
 
 
 @_jit
+def _copy4(src, dst):
+    """``dst[:, :] = src`` for 4 x 4 frames, element by element: an array assignment compiles
+    numba's shape check and its error message (about 2-3 s of first use per shape)."""
+    for i in range(4):
+        for j in range(4):
+            dst[i, j] = src[i, j]
+
+
+@_jit
 def load_work(qc, inv, qm, psi0b, D, sec, h, presc_inc, us_held, presc_local, F, phi, Qb,
               order, gW, HW):
     """The work ``W = F . p_tip`` [J] of one element's dead tip force (returned); with
@@ -516,7 +525,8 @@ def load_work(qc, inv, qm, psi0b, D, sec, h, presc_inc, us_held, presc_local, F,
                     ux += rx
                     uy += ry
                     if der:
-                        dpsi[k, nd, j, :] = dstart[j]
+                        for c in range(nc):
+                            dpsi[k, nd, j, c] = dstart[j, c]
                         for p in range(n):
                             f = off + (2 + j) * n + p
                             ci = inv[f]
@@ -574,14 +584,14 @@ def load_work(qc, inv, qm, psi0b, D, sec, h, presc_inc, us_held, presc_local, F,
     P = np.eye(4, dtype=dt)
     if not der:
         for k in range(K):
-            Pprev[k] = P
+            _copy4(P, Pprev[k])
             exp_value(Om[k], E[k])
             mat4(Pprev[k], E[k], P)
         return F[0] * P[0, 3] + F[1] * P[1, 3] + F[2] * P[2, 3]
     dE = np.empty((K, 6, 4, 4), dtype=dt)
     J = np.zeros((9, _NJ), dtype=dt)
     for k in range(K):
-        Pprev[k] = P
+        _copy4(P, Pprev[k])
         exp_jets(Om[k], E[k], dE[k], J)
         mat4(Pprev[k], E[k], P)
     W = F[0] * P[0, 3] + F[1] * P[1, 3] + F[2] * P[2, 3]

@@ -195,8 +195,10 @@ def _applies(D, F, M, opts: SolverOptions) -> bool:
 
 
 def _tube_arrays(tubes: TubeTensors, B: int) -> tuple[np.ndarray, ...]:
-    """``(EI, GJ, L, Ls, coef)`` as C-contiguous float64 arrays of ``B`` rows."""
-    return tuple(np.ascontiguousarray(np.broadcast_to(x.detach().numpy(), (B,) + x.shape[1:]))
+    """``(EI, GJ, L, Ls, coef)`` as C-contiguous float64 arrays of ``B`` rows, writable copies:
+    numba compiles a readonly array (a broadcast view, which ``np.ascontiguousarray`` returns
+    as it is at ``B = 1``) as another type, i.e. every kernel a second time."""
+    return tuple(np.array(np.broadcast_to(x.detach().numpy(), (B,) + x.shape[1:]), order="C")
                  for x in (tubes.EI, tubes.GJ, tubes.length, tubes.straight, tubes.coef))
 
 
