@@ -798,11 +798,11 @@ def active_extent(qm, EIw, EIws, GJw, Hsec, N, Cn):
     return min(N + used * Cn, nc)
 
 
-# The Newton's two wrappers are inlined into their callers by numba (``inline="always"``: at
-# numba's IR, before typing, so no compiled function of their own): numba optimizes and emits
-# the machine code of each compiled function together with everything it calls, so every
-# wrapper level around the Newton cost its whole tree again on first use (3.5-6 s a level,
-# numba's compile events).
+# Thin wrappers (the Newton's two, the step's, the partials' and the tip partials') are
+# inlined into their callers by numba (``inline="always"``: at numba's IR, before typing, so no
+# compiled function of their own): numba optimizes and emits the machine code of each compiled
+# function together with everything it calls, so every wrapper level cost its whole tree again
+# on first use (3.5-6 s a level around the Newton, numba's compile events).
 _inline = cached_jit(nogil=True, inline="always")
 
 
@@ -1139,7 +1139,7 @@ def newton_into(b, q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst
     verdict[b] = int(out[4])
 
 
-@_jit
+@_inline
 def step_at(b, q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst, phi, Qb, LD, tiny):
     if LD is None:     # (see newton_into)
         return step_one(q[b], qm[b], psi0[b], bvec[b], h[b], us[b], EIw[b], EIws[b], GJw[b],
@@ -1213,7 +1213,7 @@ def horner_integral(coef, j, t):
     return out
 
 
-@_jit
+@_inline
 def partials_one(q, qmask, D, L, Ls, EI, GJ, coef, tau, psi0, start, h, present, curved,
                  active, presc, W, xq, wq, phi, Qb, tau_D, tau_A):
     """One element's ``(dU/dD, dU/dalpha)`` at fixed q into tau_D, tau_A (N,)
@@ -1773,7 +1773,7 @@ def tip_twist_core(q, Dc, dA, qmask, D, L, Ls, coef, tau, psi0, start, h, presen
     tip_frame(g, angle, tip, R)
 
 
-@_jit
+@_inline
 def tip_partials_one(q, qmask, D, L, Ls, coef, tau, psi0, start, h, present, curved, presc,
                      tip_tube, xm, phi, Qb, Pq, Px):
     """One element's tip partials at fixed ``q``: ``Pq (6, nq)`` per coordinate (zero on the
@@ -1788,7 +1788,7 @@ def tip_partials_one(q, qmask, D, L, Ls, coef, tau, psi0, start, h, present, cur
                           presc, tip_tube, xm, phi, Qb, zero, zero, Px)
 
 
-@_jit
+@_inline
 def tip_actuator_partials(q, qmask, D, L, Ls, coef, tau, psi0, start, h, present, curved,
                           presc, tip_tube, xm, phi, Qb, Ds, As, Px):
     """``Px (6, 2N)``: the tip twist's partials per insertion then rotation at the insertions
