@@ -751,22 +751,32 @@ def test_each_kernel_is_compiled_once_for_the_default_solve_and_the_tracker():
     """First use is numba's compile time (docs/performance.md, *First use*): a kernel called
     with an int literal is compiled once per literal value and once more for a variable, and
     a readonly array (a broadcast view) is another type than a writable one, so either
-    compiles a kernel, with everything it calls, a second time. After a default solve, its
-    control step and a tracker step (the environments' call), no signature of the energy, the
-    precurvature polynomials, the layout or the solve core holds a literal or a readonly
-    array."""
-    from torchpvs import compiled_layout, tracker
+    compiles a kernel, with everything it calls, a second time. The arrays the fused solve and
+    the tracker pass are writable and the constant orders and components are numba int64
+    (whatever the cache holds); where this process compiled the kernels (an empty cache: a
+    function loaded from the cache brings its callees' code, and their dispatchers stay
+    empty), no signature of the energy, the precurvature polynomials, the layout or the solve
+    core holds a literal or a readonly array after a solve, its control step and a tracker
+    step."""
+    import numba
+
+    from torchpvs import compiled_layout, fused, tracker
 
     scene = fig3()
     eq = tp.solve(scene, rotation=torch.tensor([0.0, 1.0], dtype=DT))
     eq.jacobians(compliance=False)
     tr = tp.Tracker(scene, rotation=np.array([0.0, 1.0]), initial=eq)
     tr.step(tr._D.copy(), np.array([0.0, 1.02]), jacobians=True, forces=True, margin=True)
+    for a in (*fused._tube_arrays(eq.context.tubes, 1), *tr._tube_args,
+              *tr._tube_args_for(3)[0]):
+        assert numba.typeof(a).mutable and a.flags.c_contiguous
+    for c in (compiled._E0, compiled._E2, compiled._E3, compiled._C0, compiled._C1,
+              compiled._C2, compiled_layout._C0, compiled_layout._C1):
+        assert numba.typeof(c) == numba.int64
     kernels = (compiled.evaluate, compiled.total, compiled.horner, compiled.horner_derivative,
                compiled_layout._horner_zero, compiled_layout.layout_maps_arrays,
                tracker.solve_core)
     for k in kernels:
-        assert k.signatures, k.py_func.__name__
         for sig in k.signatures:
             for t in sig:
                 name = f"{k.py_func.__name__}{sig}"

@@ -294,12 +294,12 @@ def test_time_limit_bounds_a_hard_solve_and_says_so():
     SolverOptions.time_limit bounds the Newton iterations; the answer is reported unconverged
     with the reason, not NaN, and the call returns soon after the limit (the remaining work is
     one iteration plus the outputs)."""
-    import time
+    from torchpvs.clock import work_clock
     tp.solve(SC, options=tp.SolverOptions(order=2))               # warm: first-call setup
     opts = tp.SolverOptions(on_failure="ignore", time_limit=0.3, compute_forces=False)
-    t0 = time.perf_counter()
+    t0 = work_clock()         # (the limit's clock: compiling a kernel on first use not counted)
     eq = tp.solve(SC, tip_moment=[0.0, 10.0, 0.0], options=opts)
-    elapsed = time.perf_counter() - t0
+    elapsed = work_clock() - t0
     assert not bool(eq.converged[0]) and "time limit time_limit=0.3 s reached" in eq.reason[0]
     assert math.isfinite(float(eq.residual_norm[0])) and bool(torch.isfinite(eq.q).all())
     assert elapsed < 0.3 + 2.0, elapsed
@@ -318,25 +318,28 @@ def test_time_limit_must_be_positive_seconds(value):
 def test_calls_of_many_solves_honour_their_time_limit():
     """inverse_kinematics, solve_force_controlled and continuation stop at their time_limit
     (checked before every iteration, every inner solve bounded by what is left) and say so;
-    with the default limits the same calls finish."""
+    with the default limits the same calls finish. The limits bound work: they run on
+    :func:`torchpvs.clock.work_clock`, which does not count numba compiling a kernel on its
+    first use (tens of seconds with an empty cache), so the elapsed time is taken on it."""
     import math
-    import time
 
     import torchpvs
+    from torchpvs.clock import work_clock
     scene = torchpvs.load_scene("renda2021_fig3")
-    t = time.perf_counter()
+    t = work_clock()
     ik = torchpvs.inverse_kinematics(scene, [0.03, 0.02, 0.09], time_limit=0.05)
-    assert ik.timed_out and time.perf_counter() - t < 3.0
+    assert ik.timed_out and work_clock() - t < 3.0
     assert not torchpvs.inverse_kinematics(scene, [0.03, 0.02, 0.09], max_iter=2).timed_out
-    t = time.perf_counter()
+    t = work_clock()
     fc = torchpvs.solve_force_controlled(scene, torques=[math.nan, 0.01], time_limit=1e-3,
                                          on_failure="ignore")
-    assert time.perf_counter() - t < 3.0
+    assert work_clock() - t < 3.0
     assert not bool(fc.converged[0]) and "time limit" in fc.reason[0]
     path = torchpvs.ActuationPath(rotation=[[0, 0], [0, 2 * math.pi]])
-    t = time.perf_counter()
-    res = torchpvs.continuation("renda2021_section3b", path, time_limit=0.3)
-    assert time.perf_counter() - t < 3.0
+    t = work_clock()
+    # (182 steps of about 1 ms: 0.3 s of work was at times enough to finish the path)
+    res = torchpvs.continuation("renda2021_section3b", path, time_limit=0.03)
+    assert work_clock() - t < 3.0
     assert not res.complete and "time limit" in res.reason and len(res) >= 1
     for call in (lambda: torchpvs.inverse_kinematics(scene, [0.03, 0.02, 0.09], time_limit=0),
                  lambda: torchpvs.solve_force_controlled(scene, torques=[math.nan, 0.01],
