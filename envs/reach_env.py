@@ -155,6 +155,16 @@ class CTRReachEnv(gym.Env):
         SB3's ``DummyVecEnv`` autoresets without options); ``None`` clears it. Used once."""
         self.task.set_next_goal([0], goal)
 
+    def set_next_start(self, x) -> None:
+        """Start state ``x (2N,)`` (insertions [m] then rotations [rad], at rest) for the
+        next episode (:meth:`envs.task.ReachBatch.set_next_start`); ``None`` clears it."""
+        self.task.set_next_start([0], x)
+
+    @property
+    def episode_start(self) -> np.ndarray:
+        """The state ``x (2N,)`` the current episode started at."""
+        return self.task.episode_start[0].copy()
+
     def render(self):
         """Gymnasium's render API: ``"rgb_array"`` returns the frame ``(H, W, 3)`` uint8;
         ``"human"`` draws into a pyplot window (also done by every ``reset``/``step``) and

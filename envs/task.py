@@ -483,6 +483,8 @@ class ReachBatch:
         self.goal = np.zeros((batch_size, 3))
         self.goal_actuation = np.zeros((batch_size, 2 * robot.n_tubes))  # one preimage of goal
         self.next_goal = np.full((batch_size, 3), np.nan)   # set_next_goal's; NaN: none
+        self.next_start = np.full((batch_size, 2 * robot.n_tubes), np.nan)  # set_next_start's
+        self.episode_start = np.full((batch_size, 2 * robot.n_tubes), np.nan)  # x at reset
         self.prev_action = np.zeros((batch_size, 2 * self.N))
         self.snap_flag = np.zeros(batch_size)   # 1 after a penalized snap (achieved_goal[3])
         # per robot: the episode generator (an env's np_random) and the one the current
@@ -645,6 +647,8 @@ class ReachBatch:
                 self.reset(idx[queued], goal=goals)
                 return
         user_goal = None if goal is None else self.check_goal(goal, len(idx))
+        starts = self.next_start[idx].copy()
+        self.next_start[idx] = np.nan
         for i in idx:
             self.rngs[i] = np.random.default_rng(self.np_randoms[i].integers(2**63))
         self.plants.draw(idx, self.rngs)
@@ -680,6 +684,8 @@ class ReachBatch:
             by_eq[id(e)][2].append(r)
         for e, members, r in by_eq.values():
             self.robots.set_state(idx[members], xs[members, 0], eq=e, rows=np.array(r))
+        self._start_at(idx, starts)
+        self.episode_start[idx] = self.robots.x[idx]
         self.goal[idx] = goal
         self.goal_actuation[idx] = goal_x
         self.prev_action[idx] = 0.0
@@ -698,6 +704,44 @@ class ReachBatch:
             self.next_goal[idx] = np.nan
             return
         self.next_goal[idx] = self.check_goal(goal, len(idx), name="next goal")
+
+    def set_next_start(self, idx, x) -> None:
+        """Queue a start state ``x`` (``(2N,)`` or ``(len(idx), 2N)``: insertions [m] then
+        rotations [rad], at rest) for the next reset of robots ``idx``, an autoreset included;
+        ``x=None`` clears the queue. A queued start is used once, in place of the sampled one
+        (the generators draw as without it, so later episodes do not change), if the robot's
+        plant is a converged, stable equilibrium there; otherwise the sampled start stays.
+        Insertions are projected onto the feasible set as in any placement. For curricula
+        that replay the episodes an agent failed (``training.callbacks.FailedGoalReplay``
+        with ``with_start=True``); the queued goal (:meth:`set_next_goal`) is separate."""
+        idx = np.asarray(idx, dtype=int).reshape(-1)
+        if x is None:
+            self.next_start[idx] = np.nan
+            return
+        x = np.asarray(x, dtype=np.float64)
+        if x.shape == (2 * self.N,):
+            x = np.broadcast_to(x, (len(idx), 2 * self.N))
+        if x.shape != (len(idx), 2 * self.N):
+            raise ValueError(f"next start must have shape ({2 * self.N},) or "
+                             f"({len(idx)}, {2 * self.N}) (insertions then rotations), "
+                             f"got {x.shape}")
+        if not np.isfinite(x).all():
+            raise ValueError("next start must be finite (insertions [m], rotations [rad])")
+        self.next_start[idx] = x
+
+    def _start_at(self, idx: np.ndarray, starts: np.ndarray) -> None:
+        """Place the robots of ``idx`` whose row of ``starts`` is finite (queued by
+        :meth:`set_next_start`) there, where their plant is converged and stable."""
+        q = np.isfinite(starts[:, 0])
+        if not q.any():
+            return
+        x = starts[q].copy()
+        x[:, :self.N] = self.robot.project(x[:, :self.N])[0]
+        eq = self.plants.solve(x, idx[q])
+        self.robots.solves += 1
+        ok = (eq.converged & eq.stable).numpy()
+        if ok.any():
+            self.robots.set_state(idx[q][ok], x[ok], eq=eq, rows=np.flatnonzero(ok))
 
     def _measure(self, idx) -> None:
         """The measured tip of robots ``idx``: the true tip plus ``tip_noise`` per axis, from

@@ -155,6 +155,16 @@ class _RobotProxy:
         ``env_method("set_next_goal", goal, indices=[i])``)."""
         self._venv.task.set_next_goal([self._i], goal)
 
+    def set_next_start(self, x) -> None:
+        """This robot's start state for its next episode
+        (:meth:`envs.task.ReachBatch.set_next_start`)."""
+        self._venv.task.set_next_start([self._i], x)
+
+    @property
+    def episode_start(self) -> np.ndarray:
+        """This robot's state ``x (2N,)`` at the start of its current episode."""
+        return self._venv.task.episode_start[self._i].copy()
+
     def relabel_observation(self, observation, achieved_goal, desired_goal):
         return self._venv.task.relabel_observation(observation, achieved_goal, desired_goal)
 

@@ -79,7 +79,10 @@ class FailedGoalReplay(BaseCallback):
     goal to a pool of the last ``capacity`` such goals, and each robot that finishes an episode
     draws, with probability ``fraction``, a goal from the pool (uniformly) for its episode after
     the next one (the next has started in the same step: vector envs reset finished robots
-    themselves). The start state is the one the robot's seed gives either way.
+    themselves). The start state is the one the robot's seed gives, unless ``with_start``:
+    then the pool holds each failed episode's start state with its goal, and a replay queues
+    both (``set_next_start``), so the agent meets the same situation again (a goal missed from
+    a deeply retracted start is an easy goal from most other starts).
 
     Why: the goals a nearly trained agent misses are rare under the goal distribution (the
     force agent's far misses cluster at the top of the workspace, 7 % of the goals), so uniform
@@ -93,7 +96,7 @@ class FailedGoalReplay(BaseCallback):
     episodes that queued a replayed goal)."""
 
     def __init__(self, fraction: float = 0.3, capacity: int = 1000, seed: int | None = None,
-                 verbose: int = 0):
+                 with_start: bool = False, verbose: int = 0):
         super().__init__(verbose)
         fraction = float(fraction)
         if not 0.0 <= fraction <= 1.0:
@@ -101,8 +104,13 @@ class FailedGoalReplay(BaseCallback):
         if isinstance(capacity, bool) or not isinstance(capacity, int) or capacity < 1:
             raise ValueError(f"FailedGoalReplay capacity must be an integer >= 1, got "
                              f"{capacity!r}")
+        if not isinstance(with_start, bool):
+            raise ValueError(f"FailedGoalReplay with_start must be a bool, got {with_start!r}")
         self.fraction, self.capacity, self.seed = fraction, capacity, seed
-        self.pool: deque[np.ndarray] = deque(maxlen=capacity)
+        self.with_start = with_start
+        # (goal (3,), start x (2N,) or None)
+        self.pool: deque[tuple[np.ndarray, np.ndarray | None]] = deque(maxlen=capacity)
+        self.starts: list[np.ndarray] = []
         self.finished = 0
         self.replayed = 0
         self.rng = np.random.default_rng(seed)
@@ -115,18 +123,28 @@ class FailedGoalReplay(BaseCallback):
                              "(VecNormalize norm_obs), so its goals are not positions [m]")
         if self.seed is None and self.model.seed is not None:
             self.rng = np.random.default_rng(self.model.seed + 7919)
+        if self.with_start:
+            # the episodes under way started here (set at every reset, autoresets included)
+            self.starts = [np.array(x) for x in self.training_env.get_attr("episode_start")]
 
     def _on_step(self) -> bool:
         dones, infos = self.locals["dones"], self.locals["infos"]
         for i in np.flatnonzero(dones):
+            i = int(i)
             info = infos[i]
             self.finished += 1
             last = info.get("terminal_observation")
             if not info.get("is_success", False) and last is not None:
-                self.pool.append(np.array(last["desired_goal"][:3], dtype=np.float64))
+                start = self.starts[i] if self.with_start else None
+                self.pool.append((np.array(last["desired_goal"][:3], dtype=np.float64), start))
+            if self.with_start:   # the episode the autoreset began
+                self.starts[i] = np.array(
+                    self.training_env.get_attr("episode_start", indices=[i])[0])
             if self.pool and self.rng.random() < self.fraction:
-                goal = self.pool[int(self.rng.integers(len(self.pool)))]
-                self.training_env.env_method("set_next_goal", goal, indices=[int(i)])
+                goal, start = self.pool[int(self.rng.integers(len(self.pool)))]
+                self.training_env.env_method("set_next_goal", goal, indices=[i])
+                if start is not None:
+                    self.training_env.env_method("set_next_start", start, indices=[i])
                 self.replayed += 1
         self.logger.record("replay/pool", len(self.pool))
         self.logger.record("replay/share", self.replayed / max(1, self.finished))

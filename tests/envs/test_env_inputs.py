@@ -436,6 +436,50 @@ def test_a_queued_goal_takes_the_next_autoreset_once_and_keeps_the_seeds_start()
         e.set_next_goal([0.0, 0.0, 1.0])
 
 
+def test_a_queued_start_takes_the_next_autoreset_once_and_keeps_the_seeds_later_episodes():
+    """``set_next_start`` (replaying a failed episode's start with its goal): the robot starts
+    at rest at the queued state, its equilibrium the one a fresh solve there gives; the
+    episode after it is the one the seed gives without the queue."""
+    envs_ = [CTRReachVecEnv(2, max_episode_steps=2) for _ in range(2)]
+    for v in envs_:
+        v.seed(5)
+        v.reset()
+    queued, plain = envs_
+    start = queued.get_attr("episode_start", indices=[0])[0]   # robot 0's first start
+    np.testing.assert_array_equal(start, queued.state().x[0])
+    queued.env_method("set_next_start", start, indices=[1])
+    zero = np.zeros((2, 4), np.float32)
+    for _ in range(2):
+        queued.step(zero)
+        plain.step(zero)
+    sq, sp = queued.state(), plain.state()
+    np.testing.assert_allclose(sq.x[1], start, atol=1e-12)
+    np.testing.assert_array_equal(sq.v[1], 0.0)
+    np.testing.assert_array_equal(queued.get_attr("episode_start", indices=[1])[0], sq.x[1])
+    # the tip is the plant's equilibrium at that state (a separate solve of the same robot)
+    eq = queued.task.plants.solve(start[None], np.array([1]))
+    np.testing.assert_allclose(sq.tip[1], eq.tip_position.numpy()[0], atol=1e-9)
+    # the goal is the one the seed gives; robot 0 untouched
+    np.testing.assert_array_equal(sq.goal, sp.goal)
+    np.testing.assert_array_equal(sq.x[0], sp.x[0])
+    for _ in range(2):                          # used once
+        queued.step(zero)
+        plain.step(zero)
+    np.testing.assert_array_equal(queued.state().x, plain.state().x)
+    e = CTRReachEnv()
+    e.set_next_start(start)
+    e.reset(seed=1)
+    np.testing.assert_allclose(e.state().x[0], start, atol=1e-12)
+    e.set_next_start(start)
+    e.set_next_start(None)
+    e.reset(seed=1)
+    assert not np.allclose(e.state().x[0], start)
+    with pytest.raises(ValueError, match=r"next start must have shape \(4,\)"):
+        e.set_next_start([0.1, 0.2])
+    with pytest.raises(ValueError, match="finite"):
+        e.set_next_start([0.1, 0.2, np.nan, 0.0])
+
+
 @pytest.mark.parametrize("goal,match", [
     ([0.01, 0.02], r"shape \(3,\)"),
     ([0.0, 0.0, np.nan], "finite"),

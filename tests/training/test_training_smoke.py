@@ -97,7 +97,8 @@ def test_failed_goal_replay_sends_robots_back_to_missed_goals():
     cb = FailedGoalReplay(fraction=1.0, capacity=50)
     model.learn(18, callback=cb)               # 9 batched steps: 3 episodes per robot
     assert cb.finished == 6 and cb.replayed == 6 and len(cb.pool) == 6
-    pool = np.array(cb.pool)
+    assert all(start is None for _, start in cb.pool)
+    pool = np.array([g for g, _ in cb.pool])
     # the episodes now running were queued at the end of the first ones: goals from the pool
     for g in venv.state().goal:
         assert np.abs(pool - g).max(-1).min() < 1e-6
@@ -105,8 +106,34 @@ def test_failed_goal_replay_sends_robots_back_to_missed_goals():
     assert len({tuple(np.round(g, 9)) for g in pool}) >= 4
     with pytest.raises(ValueError, match="fraction"):
         FailedGoalReplay(fraction=1.5)
+    with pytest.raises(ValueError, match="with_start"):
+        FailedGoalReplay(with_start="yes")
     with pytest.raises(ValueError, match="capacity"):
         FailedGoalReplay(capacity=0)
+
+
+def test_failed_episode_replay_sends_robots_back_to_missed_starts_and_goals():
+    """``with_start=True``: the pool holds each missed episode's start state with its goal,
+    and a replay puts the robot back at that start with that goal."""
+    from sb3_contrib import TQC
+
+    from training.callbacks import FailedGoalReplay
+
+    venv = envs.CTRReachVecEnv(2, max_episode_steps=3)
+    model = TQC("MultiInputPolicy", venv, learning_starts=10_000, buffer_size=100, seed=0,
+                policy_kwargs={"net_arch": [8]})
+    venv.seed(4)
+    cb = FailedGoalReplay(fraction=1.0, capacity=50, with_start=True)
+    model.learn(9, callback=cb)                # the first episode of each robot misses
+    first = {(tuple(np.round(x, 9)), tuple(np.round(g, 9))) for g, x in cb.pool}
+    assert cb.finished == 2 and len(first) == 2
+    model.learn(9, callback=cb, reset_num_timesteps=False)
+    s, starts = venv.state(), venv.get_attr("episode_start")
+    # the episodes now running replay pool entries: start and goal together
+    for i in range(2):
+        pair = min(cb.pool, key=lambda e: np.abs(e[1] - starts[i]).max())
+        np.testing.assert_allclose(starts[i], pair[1], atol=1e-9)
+        np.testing.assert_allclose(s.goal[i], pair[0], atol=1e-6)
 
 
 def test_train_200_steps_and_evaluate(tmp_path):
