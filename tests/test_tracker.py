@@ -453,3 +453,45 @@ def test_solve_from_in_threads_equals_one_call():
     assert one.converged.all()
     with pytest.raises(ValueError, match="threads must be an integer >= 1"):
         tr.solve_from(eq.q, D1, A1, threads=0)
+
+
+@pytest.mark.parametrize("robot", ["fig3", "three_tube"])
+def test_forward_mode_tip_tangents_equal_the_complex_step(robot):
+    """The control step's ``J = P_x - P_q Z`` by forward-mode tangents
+    (``tracker.tip_forward``) against the complex step of the same pose, one pass per actuator
+    (``compiled.tip_directional``, an independent derivative of the same arithmetic): random
+    coordinate directions, at the layout's own insertions and moved along its slopes, on
+    random rotations and insertions (straight sections in the guide, transitions, tube ends),
+    to round-off."""
+    from torchpvs import tracker as T
+    from torchpvs.compiled_layout import layout_maps_arrays
+    from torchpvs.testing import nested_scene
+    scene = tp.load_scene("renda2021_fig3") if robot == "fig3" else nested_scene(3, seed=2)
+    rng = np.random.default_rng(11)
+    tr = tp.Tracker(scene)
+    N = tr.N
+    xg, wg, xq, wq, xm, _ = tr._layout_tables
+    tubes, unloaded = tr._tube_args_for(1)
+    worst = 0.0
+    for _ in range(6):
+        D = tr._D + rng.uniform(0.0, 0.02, (1, 1))       # all tubes retracted together
+        A = rng.uniform(-2.0, 2.0, (1, N))
+        s = tr.step(D, A)
+        assert s.converged[0]
+        lay = layout_maps_arrays(*tubes, D, A, unloaded, 1e-12, xg, wg, xq, wq, xm, tr._phi,
+                                 tr._n)
+        tau, psi0, start, h, present, curved, presc, qmask, tip_tube = (
+            lay[1][0], lay[9][0], lay[2][0], lay[3][0], lay[4][0], lay[5][0], lay[7][0],
+            lay[8][0], lay[12][0])
+        EI, GJ, L, Ls, coef = (a[0] for a in tubes)
+        dq = rng.normal(size=(s.q.shape[1], 2 * N)) * qmask[:, None]
+        for Ds, As in ((np.zeros(N), np.zeros(N)),
+                       (rng.normal(size=N) * 1e-4, rng.normal(size=N) * 1e-2)):
+            args = (s.q[0], dq, qmask, D[0], L, Ls, coef, tau, psi0, start, h, present, curved,
+                    presc, tip_tube, xm, tr._phi_m, tr._Q_m, Ds, As)
+            ref, fwd = np.empty((6, 2 * N)), np.empty((6, 2 * N))
+            compiled.tip_directional(*args, ref)
+            T.tip_forward(*args, fwd)
+            assert np.abs(ref).max() > 0
+            worst = max(worst, float(np.abs(fwd - ref).max() / np.abs(ref).max()))
+    assert worst < 1e-13

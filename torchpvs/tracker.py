@@ -45,16 +45,21 @@ from . import compiled
 from .basis import gauss_legendre
 from .compiled import (
     cholesky,
+    cut_slopes,
     factor_leading,
+    guide_curved,
+    horner,
+    horner_derivative,
+    horner_integral,
     lu_solve,
     newton_into,
     partials_one,
     pose_one,
+    section_moved,
     section_step_one,
     solve_leading,
     step_one,
     stiffness_rows_one,
-    tip_directional,
 )
 from .compiled_layout import layout_maps_arrays
 from .compiled_load import cached_jit
@@ -66,6 +71,9 @@ from .order_control import newton_tol
 from .predictor import PREDICTOR_TRUST
 from .scene import Scene, load_scene
 from .sections import n_coordinates
+
+# the precurvature polynomials' components (int64: numba compiles once per literal value)
+_X, _Y, _Z = np.int64(0), np.int64(1), np.int64(2)
 
 __all__ = ["Tracker", "TrackState", "layout_and_track", "solve_core"]
 
@@ -136,6 +144,320 @@ def _scaled_active(H, qm):
         for c in range(m):
             A[a, c] = sc[a] * H[i, act[c]] * sc[c]
     return A
+
+
+def _series_coefficients(shift: int, terms: int) -> list[float]:
+    return [(-1) ** k / math.factorial(2 * k + shift) for k in range(terms)]
+
+
+#: ``sin t / t``, ``(1 - cos t) / t^2``, ``(t - sin t) / t^3`` as power series in ``s = t^2``:
+#: ``sum_k (-s)^k / (2k + shift)!``, shifts 1, 2, 3; 12 terms leave < 1e-20 for ``s < 1``
+_SE3_SERIES = np.array([_series_coefficients(shift, 12) for shift in (1, 2, 3)])
+
+
+@cached_jit(nogil=True)
+def _se3_series(f, s):
+    """Series ``f`` of :data:`_SE3_SERIES` and its derivative at ``s`` (Horner)."""
+    K = _SE3_SERIES.shape[1]
+    v = _SE3_SERIES[f, K - 1]
+    dv = (K - 1) * _SE3_SERIES[f, K - 1]
+    for k in range(K - 2, -1, -1):
+        v = v * s + _SE3_SERIES[f, k]
+    for k in range(K - 2, 0, -1):
+        dv = dv * s + k * _SE3_SERIES[f, k]
+    return v, dv
+
+
+@cached_jit(nogil=True)
+def _exp_tangents(om, dom, E, Et):
+    """Rows 0-2 of ``E = exp(om)`` (4 x 4, ``om = (omega, v)``: ``R = I + A W + B W^2``,
+    ``t = v + B (w x v) + C (w (w.v) - |w|^2 v)``, ``W = [w]x``, the exponential of
+    :func:`torchpvs.compiled.exp_right_any`) into ``E (3, 4)`` and its tangents along the
+    columns of ``dom (6, M)`` into ``Et (M, 3, 4)``, from ``A, B, C`` and their derivatives in
+    ``s = |w|^2`` (series below ``s = 1``, closed forms above)."""
+    wx, wy, wz, vx, vy, vz = om[0], om[1], om[2], om[3], om[4], om[5]
+    s = wx * wx + wy * wy + wz * wz
+    if s < 1.0:
+        A, A1 = _se3_series(0, s)
+        B, B1 = _se3_series(1, s)
+        C, C1 = _se3_series(2, s)
+    else:
+        t = math.sqrt(s)
+        st = math.sin(t)
+        ct = math.cos(t)
+        A = st / t
+        A1 = (ct - A) / (2 * s)
+        B = (1 - ct) / s
+        B1 = (0.5 * A - B) / s
+        C = (1 - A) / s
+        C1 = (-A1 - C) / s
+    wv = wx * vx + wy * vy + wz * vz
+    cx = wy * vz - wz * vy
+    cy = wz * vx - wx * vz
+    cz = wx * vy - wy * vx
+    E[0, 0] = 1.0 + B * (wx * wx - s)
+    E[1, 1] = 1.0 + B * (wy * wy - s)
+    E[2, 2] = 1.0 + B * (wz * wz - s)
+    E[0, 1] = B * wx * wy - A * wz
+    E[1, 0] = B * wx * wy + A * wz
+    E[0, 2] = B * wx * wz + A * wy
+    E[2, 0] = B * wx * wz - A * wy
+    E[1, 2] = B * wy * wz - A * wx
+    E[2, 1] = B * wy * wz + A * wx
+    E[0, 3] = vx + B * cx + C * (wx * wv - s * vx)
+    E[1, 3] = vy + B * cy + C * (wy * wv - s * vy)
+    E[2, 3] = vz + B * cz + C * (wz * wv - s * vz)
+    for d in range(Et.shape[0]):
+        ax, ay, az = dom[0, d], dom[1, d], dom[2, d]
+        bx, by, bz = dom[3, d], dom[4, d], dom[5, d]
+        ds = 2.0 * (wx * ax + wy * ay + wz * az)
+        dA = A1 * ds
+        dB = B1 * ds
+        dC = C1 * ds
+        Et[d, 0, 0] = dB * (wx * wx - s) + B * (2.0 * wx * ax - ds)
+        Et[d, 1, 1] = dB * (wy * wy - s) + B * (2.0 * wy * ay - ds)
+        Et[d, 2, 2] = dB * (wz * wz - s) + B * (2.0 * wz * az - ds)
+        p = dB * wx * wy + B * (ax * wy + wx * ay)
+        r = dA * wz + A * az
+        Et[d, 0, 1] = p - r
+        Et[d, 1, 0] = p + r
+        p = dB * wx * wz + B * (ax * wz + wx * az)
+        r = dA * wy + A * ay
+        Et[d, 0, 2] = p + r
+        Et[d, 2, 0] = p - r
+        p = dB * wy * wz + B * (ay * wz + wy * az)
+        r = dA * wx + A * ax
+        Et[d, 1, 2] = p - r
+        Et[d, 2, 1] = p + r
+        dwv = ax * vx + wx * bx + ay * vy + wy * by + az * vz + wz * bz
+        dcx = ay * vz + wy * bz - az * vy - wz * by
+        dcy = az * vx + wz * bx - ax * vz - wx * bz
+        dcz = ax * vy + wx * by - ay * vx - wy * bx
+        Et[d, 0, 3] = (bx + dB * cx + B * dcx + dC * (wx * wv - s * vx)
+                       + C * (ax * wv + wx * dwv - ds * vx - s * bx))
+        Et[d, 1, 3] = (by + dB * cy + B * dcy + dC * (wy * wv - s * vy)
+                       + C * (ay * wv + wy * dwv - ds * vy - s * by))
+        Et[d, 2, 3] = (bz + dB * cz + B * dcz + dC * (wz * wv - s * vz)
+                       + C * (az * wv + wz * dwv - ds * vz - s * bz))
+
+
+@cached_jit(nogil=True)
+def tip_forward(q, dq, qmask, D, L, Ls, coef, tau, psi0, start, h, present, curved, presc,
+                tip_tube, xm, phi, Qb, Ds, As, Px):
+    """:func:`torchpvs.compiled.tip_directional` with ``dq (nq, 2N)`` by forward-mode
+    (tangent) arithmetic instead of one complex step per actuator: ``Px[:, d] = d(tip twist)/
+    dx_d`` with the coordinates moving by ``dq[:, d]`` per unit of actuator ``d`` (the
+    insertions, then the rotations), at the insertions ``D + Ds`` and rotations moved by
+    ``As`` (the layout's fields along their slopes, as :func:`torchpvs.compiled.
+    tip_twist_core`). Every scalar of the pose carries its ``2N`` tangents, the Magnus
+    exponentials too (:func:`_exp_tangents`). Rows: the tip position [m] and the spatial rotation
+    ``vee(skew(dR R^T))`` [rad]. The same derivatives as the complex step to round-off, at
+    about half its work (the complex step repeats the whole pose in complex arithmetic once
+    per actuator)."""
+    N = D.shape[0]
+    M = 2 * N
+    S = h.shape[0]
+    G, n = phi.shape
+    ms = G // 2
+    Cn = (2 + N) * n
+    dh, dstart = cut_slopes(D, L, Ls, S)
+    Dc = np.empty(N)
+    for j in range(N):
+        Dc[j] = D[j] + Ds[j]
+    psi = np.empty(N)
+    dpsi = np.zeros((N, M))
+    ntau = np.empty(N)
+    Z0 = np.empty(N)
+    dZ0 = np.zeros((N, M))
+    for j in range(N):
+        tg, tg_r, dtg = guide_curved(D, L, Ls, Dc, j)
+        w = q[j] * qmask[j]
+        psi[j] = (psi0[j] + As[j] + horner_integral(coef, j, tg)
+                  - horner_integral(coef, j, tg_r) + Dc[j] * w)
+        pz = horner(coef, j, _Z, tg)
+        for d in range(M):
+            dpsi[j, d] = Dc[j] * (dq[j, d] * qmask[j])
+        dpsi[j, j] += pz * dtg + w
+        dpsi[j, N + j] += 1.0
+        ntau[j] = (Dc[j] - D[j]) - tau[j]        # its tangent: 1 along D_j
+    g = np.eye(4)
+    dg = np.zeros((M, 4, 4))
+    gn = np.empty((4, 4))
+    dgn = np.empty((M, 4, 4))
+    E = np.empty((3, 4))
+    Et = np.empty((M, 3, 4))
+    om = np.empty(6)
+    dom = np.empty((6, M))
+    u = np.empty((G, 2))
+    du = np.empty((G, 2, M))
+    dsk = np.zeros(M)
+    dhk = np.zeros(M)
+    ds = np.empty(M)
+    dt = np.empty(M)
+    dps = np.empty(M)
+    k3 = 3.0 ** 0.5 / 12.0
+    for k in range(S):
+        moves = False
+        for l in range(N):
+            if dh[k, l] != 0.0:
+                moves = True
+        if h[k] == 0.0 and not moves:      # an identity step that adds no angle
+            continue
+        off = N + k * Cn
+        sk, hk = section_moved(start, h, dstart, dh, k, Dc, D)
+        for l in range(N):
+            dsk[l] = dstart[k, l]
+            dhk[l] = dh[k, l]
+        for j in range(N):
+            t0 = sk + ntau[j]
+            Z0[j] = horner_integral(coef, j, t0)
+            pz = horner(coef, j, _Z, t0)
+            for d in range(M):
+                dZ0[j, d] = pz * dsk[d]
+            dZ0[j, j] += pz
+        for gg in range(G):
+            xi = 0.5 * (xm[gg] + 1.0)
+            s_node = sk + xi * hk
+            for d in range(M):
+                ds[d] = dsk[d] + xi * dhk[d]
+            ux = 0.0
+            uy = 0.0
+            for d in range(M):
+                du[gg, 0, d] = 0.0
+                du[gg, 1, d] = 0.0
+            for p in range(n):
+                fx = off + p
+                fy = off + n + p
+                cx = qmask[fx] * phi[gg, p]
+                cy = qmask[fy] * phi[gg, p]
+                ux += q[fx] * cx
+                uy += q[fy] * cy
+                for d in range(M):
+                    du[gg, 0, d] += dq[fx, d] * cx
+                    du[gg, 1, d] += dq[fy, d] * cy
+            for j in range(N):       # a prescribed section's strain: its precurvature
+                held = presc[k] * present[k, j]
+                if held == 0.0:
+                    continue
+                t = s_node + ntau[j]
+                for d in range(M):
+                    dt[d] = ds[d]
+                dt[j] += 1.0
+                lq = 0.0
+                for d in range(M):
+                    dps[d] = 0.0
+                for p in range(n):
+                    f = off + (2 + j) * n + p
+                    c = qmask[f] * Qb[gg, p]
+                    lq += q[f] * c
+                    for d in range(M):
+                        dps[d] += dq[f, d] * c      # d(lq) for now
+                cp = curved[k, j] * presc[k]
+                ps = psi[j] + 0.5 * hk * lq + (horner_integral(coef, j, t) - Z0[j]) * cp
+                pz = horner(coef, j, _Z, t)
+                for d in range(M):
+                    dps[d] = (dpsi[j, d] + 0.5 * (dhk[d] * lq + hk * dps[d])
+                              + (pz * dt[d] - dZ0[j, d]) * cp)
+                usx = horner(coef, j, _X, t) * curved[k, j]
+                usy = horner(coef, j, _Y, t) * curved[k, j]
+                dusx = horner_derivative(coef, j, _X, t) * curved[k, j]
+                dusy = horner_derivative(coef, j, _Y, t) * curved[k, j]
+                cs = math.cos(ps)
+                sn = math.sin(ps)
+                ux += held * (cs * usx - sn * usy)
+                uy += held * (sn * usx + cs * usy)
+                ax = held * (-sn * usx - cs * usy)     # d(u)/d(ps)
+                ay = held * (cs * usx - sn * usy)
+                bx = held * cs                          # d(u)/d(us)
+                by = held * sn
+                for d in range(M):
+                    dsx = dusx * dt[d]
+                    dsy = dusy * dt[d]
+                    du[gg, 0, d] += ax * dps[d] + bx * dsx - by * dsy
+                    du[gg, 1, d] += ay * dps[d] + by * dsx + bx * dsy
+            u[gg, 0] = ux
+            u[gg, 1] = uy
+        hs = hk / ms
+        kq = k3 * hs * hs
+        for i in range(ms):
+            a, b = 2 * i, 2 * i + 1
+            u1x, u1y, u2x, u2y = u[a, 0], u[a, 1], u[b, 0], u[b, 1]
+            om[0] = 0.5 * hs * (u1x + u2x)
+            om[1] = 0.5 * hs * (u1y + u2y)
+            om[2] = kq * (u1x * u2y - u1y * u2x)
+            om[3] = kq * (u1y - u2y)
+            om[4] = -kq * (u1x - u2x)
+            om[5] = hs
+            for d in range(M):
+                dhs = dhk[d] / ms
+                dkq = 2.0 * k3 * hs * dhs
+                d1x, d1y, d2x, d2y = du[a, 0, d], du[a, 1, d], du[b, 0, d], du[b, 1, d]
+                dom[0, d] = 0.5 * (dhs * (u1x + u2x) + hs * (d1x + d2x))
+                dom[1, d] = 0.5 * (dhs * (u1y + u2y) + hs * (d1y + d2y))
+                dom[2, d] = (dkq * (u1x * u2y - u1y * u2x)
+                             + kq * (d1x * u2y + u1x * d2y - d1y * u2x - u1y * d2x))
+                dom[3, d] = dkq * (u1y - u2y) + kq * (d1y - d2y)
+                dom[4, d] = -(dkq * (u1x - u2x) + kq * (d1x - d2x))
+                dom[5, d] = dhs
+            _exp_tangents(om, dom, E, Et)
+            # g <- g E, dg <- dg E + g dE (the frames' last rows stay (0, 0, 0, 1) and 0)
+            for r in range(3):
+                for c in range(4):
+                    acc = g[r, 0] * E[0, c] + g[r, 1] * E[1, c] + g[r, 2] * E[2, c]
+                    if c == 3:
+                        acc += g[r, 3]
+                    gn[r, c] = acc
+            for d in range(M):
+                for r in range(3):
+                    for c in range(4):
+                        acc = (dg[d, r, 0] * E[0, c] + dg[d, r, 1] * E[1, c]
+                               + dg[d, r, 2] * E[2, c] + g[r, 0] * Et[d, 0, c]
+                               + g[r, 1] * Et[d, 1, c] + g[r, 2] * Et[d, 2, c])
+                        if c == 3:
+                            acc += dg[d, r, 3]
+                        dgn[d, r, c] = acc
+            for r in range(3):
+                for c in range(4):
+                    g[r, c] = gn[r, c]
+                    for d in range(M):
+                        dg[d, r, c] = dgn[d, r, c]
+        for j in range(N):
+            f = off + (2 + j) * n
+            cp = curved[k, j] * presc[k]
+            t1 = sk + ntau[j] + hk
+            pz = horner(coef, j, _Z, t1)
+            psi[j] += hk * q[f] * qmask[f] + (horner_integral(coef, j, t1) - Z0[j]) * cp
+            for d in range(M):
+                dt1 = dsk[d] + dhk[d] + (1.0 if d == j else 0.0)
+                dpsi[j, d] += (dhk[d] * q[f] * qmask[f] + hk * dq[f, d] * qmask[f]
+                               + (pz * dt1 - dZ0[j, d]) * cp)
+    angle = 0.0
+    for j in range(N):
+        angle += psi[j] * tip_tube[j]
+    ca = math.cos(angle)
+    sa = math.sin(angle)
+    # the tip frame R = [g0 ca + g1 sa, -g0 sa + g1 ca, g2] (columns of g's rotation)
+    R = np.empty((3, 3))
+    for r in range(3):
+        R[r, 0] = g[r, 0] * ca + g[r, 1] * sa
+        R[r, 1] = -g[r, 0] * sa + g[r, 1] * ca
+        R[r, 2] = g[r, 2]
+    W = np.empty((3, 3))
+    for d in range(M):
+        da = 0.0
+        for j in range(N):
+            da += dpsi[j, d] * tip_tube[j]
+        for r in range(3):
+            Px[r, d] = dg[d, r, 3]
+        for r in range(3):
+            dR0 = dg[d, r, 0] * ca + dg[d, r, 1] * sa + R[r, 1] * da
+            dR1 = -dg[d, r, 0] * sa + dg[d, r, 1] * ca - R[r, 0] * da
+            dR2 = dg[d, r, 2]
+            for c in range(3):
+                W[r, c] = dR0 * R[c, 0] + dR1 * R[c, 1] + dR2 * R[c, 2]
+        Px[3, d] = 0.5 * (W[2, 1] - W[1, 2])
+        Px[4, d] = 0.5 * (W[0, 2] - W[2, 0])
+        Px[5, d] = 0.5 * (W[1, 0] - W[0, 1])
 
 
 @cached_jit(nogil=True)
@@ -228,9 +550,9 @@ def _control_rows(b, q, H, cidx, qmask_c, qmask, D, L, Ls, EI, GJ, coef, tau, ps
     """Element ``b``'s control step at ``q`` with the compact Hessian ``H`` (its Schur
     complement: torchpvs.jacobians): the energy's rows ``U_qx, U_xx`` at fixed ``q`` on the
     layout given (a kink's side or the solution's own), ``Z = H^-1 U_qx``, ``K = sym(U_xx -
-    U_xq Z)`` ``(2N, 2N)`` and ``J = P_x - P_q Z`` ``(6, 2N)`` as one complex step of the
-    tip pose per actuator with ``q`` moving by ``-Z`` (:func:`torchpvs.compiled.
-    tip_directional`: ``P_q``, 6 x nq through the Magnus chain, is never formed); ``J`` is
+    U_xq Z)`` ``(2N, 2N)`` and ``J = P_x - P_q Z`` ``(6, 2N)`` as the tip pose's tangent
+    along each actuator with ``q`` moving by ``-Z`` (:func:`tip_forward`: ``P_q``, 6 x nq
+    through the Magnus chain, is never formed); ``J`` is
     left as it is unless ``want_J`` (the stiffness alone is what time stepping needs)."""
     N = D.shape[1]
     m = 2 * N
@@ -293,9 +615,9 @@ def _control_rows(b, q, H, cidx, qmask_c, qmask, D, L, Ls, EI, GJ, coef, tau, ps
             for c in range(m):
                 dq[cidx[b, i], c] = -Z[i, c] * qmask_c[b, i]
         zero = np.zeros(N, dtype=dt)
-        tip_directional(q[b], dq, qmask[b], D[b], L[b], Ls[b], coef[b], tau[b], psi0[b],
-                        start[b], h[b], present[b], curved[b], presc[b], tip_tube[b], xm,
-                        phi_m, Q_m, zero, zero, J[b])
+        tip_forward(q[b], dq, qmask[b], D[b], L[b], Ls[b], coef[b], tau[b], psi0[b],
+                    start[b], h[b], present[b], curved[b], presc[b], tip_tube[b], xm,
+                    phi_m, Q_m, zero, zero, J[b])
     for a in range(m):
         for c in range(m):
             s = X[c, a]
