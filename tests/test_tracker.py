@@ -495,3 +495,43 @@ def test_forward_mode_tip_tangents_equal_the_complex_step(robot):
             assert np.abs(ref).max() > 0
             worst = max(worst, float(np.abs(fwd - ref).max() / np.abs(ref).max()))
     assert worst < 1e-13
+
+
+@pytest.mark.parametrize("robot", ["fig3", "three_tube"])
+def test_forward_mode_stiffness_rows_equal_the_complex_step(robot):
+    """The control step's energy rows ``U_qx, U_xx`` at fixed ``q`` by forward-mode tangents
+    (``tracker.stiffness_forward``, what the tracker and the environments use) against one
+    complex step of the same partials per actuator (``compiled.stiffness_rows_one``), along
+    the insertions alone (the rotation rows read off the Hessian) and along all actuators, on
+    random rotations and insertions, to round-off."""
+    from torchpvs import tracker as T
+    from torchpvs.compiled_layout import layout_maps_arrays
+    from torchpvs.testing import nested_scene
+    scene = tp.load_scene("renda2021_fig3") if robot == "fig3" else nested_scene(3, seed=2)
+    rng = np.random.default_rng(12)
+    tr = tp.Tracker(scene)
+    N = tr.N
+    xg, wg, xq, wq, xm, _ = tr._layout_tables
+    tubes, unloaded = tr._tube_args_for(1)
+    EI, GJ, L, Ls, coef = (a[0] for a in tubes)
+    worst, nonzero = 0.0, 0
+    for _ in range(6):
+        D = tr._D + rng.uniform(0.0, 0.005, (1, 1))
+        A = rng.uniform(-2.0, 2.0, (1, N))
+        s = tr.step(D, A)
+        assert s.converged[0]
+        lay = layout_maps_arrays(*tubes, D, A, unloaded, 1e-12, xg, wg, xq, wq, xm, tr._phi,
+                                 tr._n)
+        args = (s.q[0], lay[8][0], D[0], L, Ls, EI, GJ, coef, lay[1][0], lay[9][0], lay[2][0],
+                lay[3][0], lay[4][0], lay[5][0], lay[6][0], lay[7][0], lay[11][0], xq, wq,
+                tr._phi, tr._Qb)
+        for m in (N, 2 * N):
+            Gr, Xr = np.empty((m, s.q.shape[1])), np.empty((m, 2 * N))
+            Gf, Xf = np.full_like(Gr, np.nan), np.full_like(Xr, np.nan)
+            compiled.stiffness_rows_one(*args, Gr, Xr)
+            T.stiffness_forward(*args, Gf, Xf)
+            size = max(np.abs(Gr).max(), np.abs(Xr).max())
+            nonzero += size > 0
+            err = max(np.abs(Gf - Gr).max(), np.abs(Xf - Xr).max())
+            worst = max(worst, err / max(size, 1e-300))
+    assert nonzero >= 8 and worst < 1e-13

@@ -59,7 +59,6 @@ from .compiled import (
     section_step_one,
     solve_leading,
     step_one,
-    stiffness_rows_one,
 )
 from .compiled_layout import layout_maps_arrays
 from .compiled_load import cached_jit
@@ -461,6 +460,285 @@ def tip_forward(q, dq, qmask, D, L, Ls, coef, tau, psi0, start, h, present, curv
 
 
 @cached_jit(nogil=True)
+def _horner_second(coef, j, c, t):
+    """d^2/dt^2 of :func:`torchpvs.compiled.horner`."""
+    P = coef.shape[2]
+    if P < 3:
+        return 0.0
+    out = (P - 1) * (P - 2) * coef[j, c, P - 1]
+    for p in range(P - 2, 1, -1):
+        out = out * t + p * (p - 1) * coef[j, c, p]
+    return out
+
+
+@cached_jit(nogil=True)
+def stiffness_forward(q, qmask, D, L, Ls, EI, GJ, coef, tau, psi0, start, h, present, curved,
+                      active, presc, W, xq, wq, phi, Qb, Gq, X):
+    """:func:`torchpvs.compiled.stiffness_rows_one` by forward-mode tangents: the unloaded
+    energy's Hessian rows at fixed ``q`` along the ``M = Gq.shape[0]`` directions ``D_1..D_N``
+    then (``M = 2N``) ``alpha_1..alpha_N``, ``Gq[d] (nq,)`` (``U_qx`` column ``d``, zero on
+    inactive coordinates) and ``X[d] (2N,)`` (``U_xx`` column ``d``): the arithmetic of
+    :func:`torchpvs.compiled.partials_core` (the gradient and the partials ``tau_D, tau_A``
+    at fixed ``q`` on the layout's sections moved along their slopes in ``D``) with every
+    scalar that depends on the actuation carrying its ``M`` tangents, in one pass instead of
+    one complex-step pass per direction."""
+    N = D.shape[0]
+    S = h.shape[0]
+    Q, n = phi.shape
+    Cn = (2 + N) * n
+    nq = q.shape[0]
+    M = Gq.shape[0]
+    dh, dstart = cut_slopes(D, L, Ls, S)
+    dg = Gq                                  # the gradient's tangents, written in place
+    for d in range(M):
+        for m in range(nq):
+            dg[d, m] = 0.0
+    dtD = np.zeros((N, M))
+    dtA = np.zeros((N, M))
+    g0 = np.empty(N)
+    dg0 = np.zeros((N, M))
+    psi_start = np.empty(N)
+    dpsi = np.zeros((N, M))
+    for j in range(N):
+        w = q[j] * qmask[j]
+        tg, tg_r, dtg = guide_curved(D, L, Ls, D, j)
+        ugx = horner(coef, j, _X, tg)
+        ugy = horner(coef, j, _Y, tg)
+        g0[j] = w + horner(coef, j, _Z, tg) * dtg
+        psi_start[j] = (psi0[j] + horner_integral(coef, j, tg) - horner_integral(coef, j, tg_r)
+                        + D[j] * w)
+        if j < M:                            # along D_j: tg moves by dtg
+            dtD[j, j] = EI[j] * (ugx * horner_derivative(coef, j, _X, tg)
+                                 + ugy * horner_derivative(coef, j, _Y, tg)) * dtg * dtg
+            dg0[j, j] = horner_derivative(coef, j, _Z, tg) * dtg * dtg
+            dpsi[j, j] = horner(coef, j, _Z, tg) * dtg + w
+            dg[j, j] = GJ[j] * w
+        if N + j < M:
+            dpsi[j, N + j] = 1.0
+    before = np.zeros((N, N))
+    Gps = np.zeros((S + 1, N))
+    dGps = np.zeros((S + 1, N, M))
+    ntau = np.empty(N)
+    for j in range(N):
+        ntau[j] = -tau[j]                    # its tangent: 1 along D_j
+    a = np.empty((2, n))
+    c = np.empty((N, n))
+    Rx = np.empty(N)
+    Ry = np.empty(N)
+    dRx = np.empty((N, M))
+    dRy = np.empty((N, M))
+    us = np.empty((N, 3))
+    dus = np.empty((N, 3))                   # d(us)/dt (times dt per direction)
+    dp = np.empty(N)
+    cs = np.empty(N)
+    sn = np.empty(N)
+    dps = np.empty((N, M))
+    locq = np.empty(N)
+    Gp = np.empty(N)
+    dGp = np.empty((N, M))
+    Z0 = np.empty(N)
+    dZ0 = np.empty((N, M))
+    pm = np.empty(N)
+    dsk = np.zeros(M)
+    dhk = np.zeros(M)
+    dsn_ = np.empty(M)
+    dtn = np.empty((N, M))
+    dux = np.empty(M)
+    duy = np.empty(M)
+    ddens = np.empty(M)
+    dgsum = np.empty(M)
+    dGx = np.empty(M)
+    dGy = np.empty(M)
+    ds_loc = np.zeros(M)
+    for k in range(S):
+        off = N + k * Cn
+        sk, hk = start[k], h[k]
+        for d in range(M):
+            dsk[d] = dstart[k, d] if d < N else 0.0
+            dhk[d] = dh[k, d] if d < N else 0.0
+        for p in range(n):
+            a[0, p] = q[off + p] * qmask[off + p]
+            a[1, p] = q[off + n + p] * qmask[off + n + p]
+        for j in range(N):
+            for p in range(n):
+                c[j, p] = q[off + (2 + j) * n + p] * qmask[off + (2 + j) * n + p]
+            pm[j] = curved[k, j] * presc[k]
+            t0 = sk + ntau[j]
+            Z0[j] = horner_integral(coef, j, t0)
+            pz = horner(coef, j, _Z, t0)
+            for d in range(M):
+                dZ0[j, d] = pz * dsk[d]
+            if j < M:
+                dZ0[j, j] += pz
+            Gp[j] = 0.0
+            for d in range(M):
+                dGp[j, d] = 0.0
+        s_loc = 0.0
+        for d in range(M):
+            ds_loc[d] = 0.0
+        for i in range(Q):
+            frac = 0.5 * (xq[i] + 1.0)
+            s_node = sk + frac * hk
+            for d in range(M):
+                dsn_[d] = dsk[d] + frac * dhk[d]
+            Wki = W[k, i]
+            cW = wq[i] * 0.5 * active[k]     # d(Wki) = cW dhk
+            ux = 0.0
+            uy = 0.0
+            for p in range(n):
+                ux += a[0, p] * phi[i, p]
+                uy += a[1, p] * phi[i, p]
+            for d in range(M):
+                dux[d] = 0.0
+                duy[d] = 0.0
+            for j in range(N):
+                t = s_node + ntau[j]
+                for d in range(M):
+                    dtn[j, d] = dsn_[d]
+                if j < M:
+                    dtn[j, j] += 1.0
+                for cc in range(3):
+                    us[j, cc] = horner(coef, j, cc, t) * curved[k, j]
+                    dus[j, cc] = horner_derivative(coef, j, cc, t) * curved[k, j]
+                lq = 0.0
+                d1 = 0.0
+                for p in range(n):
+                    lq += c[j, p] * Qb[i, p]
+                    d1 += c[j, p] * phi[i, p]
+                locq[j] = lq
+                ps = (psi_start[j] + 0.5 * hk * lq
+                      + (horner_integral(coef, j, t) - Z0[j]) * pm[j])
+                pz = horner(coef, j, _Z, t)
+                cs[j] = math.cos(ps)
+                sn[j] = math.sin(ps)
+                Rx[j] = cs[j] * us[j, 0] - sn[j] * us[j, 1]
+                Ry[j] = sn[j] * us[j, 0] + cs[j] * us[j, 1]
+                dp[j] = d1 + pm[j] * us[j, 2]
+                for d in range(M):
+                    v = dpsi[j, d] + 0.5 * dhk[d] * lq + (pz * dtn[j, d] - dZ0[j, d]) * pm[j]
+                    dps[j, d] = v
+                    du0 = dus[j, 0] * dtn[j, d]
+                    du1 = dus[j, 1] * dtn[j, d]
+                    # d(R) = d(rotation by ps) us + rotation d(us)
+                    dRx[j, d] = -Ry[j] * v + cs[j] * du0 - sn[j] * du1
+                    dRy[j, d] = Rx[j] * v + sn[j] * du0 + cs[j] * du1
+            for j in range(N):        # a prescribed section's strain: its precurvature
+                held = presc[k] * present[k, j]
+                ux += held * Rx[j]
+                uy += held * Ry[j]
+                if held != 0.0:
+                    for d in range(M):
+                        dux[d] += held * dRx[j, d]
+                        duy[d] += held * dRy[j, d]
+            Gx = 0.0
+            Gy = 0.0
+            for d in range(M):
+                ddens[d] = 0.0
+                dgsum[d] = 0.0
+                dGx[d] = 0.0
+                dGy[d] = 0.0
+            for j in range(N):
+                EIp = EI[j] * present[k, j]
+                GJp = GJ[j] * present[k, j]
+                ex = ux - Rx[j]
+                ey = uy - Ry[j]
+                tors = dp[j] - us[j, 2]
+                cross = Ry[j] * ux - Rx[j] * uy
+                gpsi = Wki * EIp * cross
+                Gp[j] += gpsi
+                s_loc += gpsi * 0.5 * locq[j]
+                t = s_node + ntau[j]
+                dx = horner_derivative(coef, j, _X, t) * curved[k, j]
+                dy = horner_derivative(coef, j, _Y, t) * curved[k, j]
+                dz = horner_derivative(coef, j, _Z, t) * curved[k, j]
+                ddx = _horner_second(coef, j, _X, t) * curved[k, j]
+                ddy = _horner_second(coef, j, _Y, t) * curved[k, j]
+                ddz = _horner_second(coef, j, _Z, t) * curved[k, j]
+                px = cs[j] * dx - sn[j] * dy
+                py = sn[j] * dx + cs[j] * dy
+                inner = EIp * (ex * px + ey * py) + GJp * tors * dz
+                base = off + (2 + j) * n
+                for d in range(M):
+                    dt_ = dtn[j, d]
+                    dW = cW * dhk[d]
+                    dex = dux[d] - dRx[j, d]
+                    dey = duy[d] - dRy[j, d]
+                    dtors = pm[j] * dus[j, 2] * dt_ - dus[j, 2] * dt_
+                    ddens[d] += EIp * (ex * dex + ey * dey) + GJp * tors * dtors
+                    dcross = dRy[j, d] * ux + Ry[j] * dux[d] - dRx[j, d] * uy - Rx[j] * duy[d]
+                    dgp = dW * EIp * cross + Wki * EIp * dcross
+                    dGp[j, d] += dgp
+                    ds_loc[d] += dgp * 0.5 * locq[j]
+                    v = dps[j, d]
+                    dpx = -py * v + (cs[j] * ddx - sn[j] * ddy) * dt_
+                    dpy = px * v + (sn[j] * ddx + cs[j] * ddy) * dt_
+                    dinner = (EIp * (dex * px + ex * dpx + dey * py + ey * dpy)
+                              + GJp * (dtors * dz + tors * ddz * dt_))
+                    dgs = -(dW * inner + Wki * dinner)
+                    dgsum[d] += dgs
+                    dtD[j, d] += dgs
+                    dGx[d] += EIp * dex
+                    dGy[d] += EIp * dey
+                    for p in range(n):
+                        dg[d, base + p] += (dgp * 0.5 * hk * Qb[i, p]
+                                            + gpsi * 0.5 * dhk[d] * Qb[i, p]
+                                            + (dW * tors + Wki * dtors) * GJp * phi[i, p]
+                                            ) * qmask[base + p]
+                Gx += EIp * ex
+                Gy += EIp * ey
+            for l in range(N):
+                sl = dstart[k, l] + frac * dh[k, l]
+                for d in range(M):
+                    dtD[l, d] += ddens[d] * 0.5 * wq[i] * dh[k, l] * active[k] + dgsum[d] * sl
+            for d in range(M):
+                dW = cW * dhk[d]
+                for p in range(n):
+                    dg[d, off + p] += (dW * Gx + Wki * dGx[d]) * phi[i, p] * qmask[off + p]
+                    dg[d, off + n + p] += ((dW * Gy + Wki * dGy[d]) * phi[i, p]
+                                           * qmask[off + n + p])
+        for l in range(N):
+            for d in range(M):
+                acc = ds_loc[d] * dh[k, l] + g0[l] * dGp[l, d] + dg0[l, d] * Gp[l]
+                for j in range(N):
+                    acc += dGp[j, d] * before[j, l]
+                dtD[l, d] += acc
+                dtA[l, d] += dGp[l, d]
+        for j in range(N):
+            Gps[k, j] = Gp[j]
+            for d in range(M):
+                dGps[k, j, d] = dGp[j, d]
+            for l in range(N):
+                before[j, l] += dh[k, l] * c[j, 0]
+            t1 = sk + ntau[j] + hk
+            pz = horner(coef, j, _Z, t1)
+            psi_start[j] += hk * c[j, 0] + (horner_integral(coef, j, t1) - Z0[j]) * pm[j]
+            for d in range(M):
+                dt1 = dsk[d] + dhk[d] + (1.0 if d == j else 0.0)
+                dpsi[j, d] += dhk[d] * c[j, 0] + (pz * dt1 - dZ0[j, d]) * pm[j]
+    # the angles of section k carry D_j w_j and h_k' c_k'j0 of every earlier section k'
+    for k in range(S - 1, -1, -1):
+        off = N + k * Cn
+        hk = h[k]
+        for j in range(N):
+            f = off + (2 + j) * n
+            for d in range(M):
+                dhkd = dh[k, d] if d < N else 0.0
+                dg[d, f] += (dhkd * Gps[S, j] + hk * dGps[S, j, d]) * qmask[f]
+                dGps[S, j, d] += dGps[k, j, d]
+            Gps[S, j] += Gps[k, j]
+    for j in range(N):
+        for d in range(M):
+            v = dg[d, j] + D[j] * dGps[S, j, d]
+            if d == j:
+                v += Gps[S, j]
+            dg[d, j] = v * qmask[j]
+    for d in range(M):
+        for j in range(N):
+            X[d, j] = dtD[j, d]
+            X[d, N + j] = dtA[j, d]
+
+
+@cached_jit(nogil=True)
 def _stable(H, qm, tau):
     """Equilibrium.stable for an element without the kernel's verdict: the Jacobi-scaled
     stiffness on the active coordinates minus ``tau`` is positive definite."""
@@ -562,7 +840,7 @@ def _control_rows(b, q, H, cidx, qmask_c, qmask, D, L, Ls, EI, GJ, coef, tau, ps
     # where every guide twist w_j is a coordinate (every D_j > 0), the rotation rows are read
     # off H (torchpvs.jacobians._rotation_rows_from_hessian: U depends on alpha_j and w_j
     # only through alpha_j + D_j w_j, plus the guide's GJ_j D_j w_j^2 / 2); the insertion
-    # rows by a complex step each
+    # rows by forward-mode tangents (stiffness_forward)
     iw = np.full(N, -1, dtype=np.int64)
     for i in range(nc):
         c = cidx[b, i]
@@ -574,9 +852,9 @@ def _control_rows(b, q, H, cidx, qmask_c, qmask, D, L, Ls, EI, GJ, coef, tau, ps
     n_rows = N if from_H else m
     Gq = np.empty((n_rows, nq), dtype=dt)
     X = np.empty((m, m), dtype=dt)
-    stiffness_rows_one(q[b], qmask[b], D[b], L[b], Ls[b], EI[b], GJ[b], coef[b], tau[b],
-                       psi0[b], start[b], h[b], present[b], curved[b], active[b], presc[b],
-                       W[b], xq, wq, phi, Qb, Gq, X[:n_rows])
+    stiffness_forward(q[b], qmask[b], D[b], L[b], Ls[b], EI[b], GJ[b], coef[b], tau[b],
+                      psi0[b], start[b], h[b], present[b], curved[b], active[b], presc[b],
+                      W[b], xq, wq, phi, Qb, Gq, X[:n_rows])
     G = np.empty((m, nc), dtype=dt)
     for d in range(n_rows):
         for i in range(nc):
