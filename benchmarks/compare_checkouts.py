@@ -8,7 +8,9 @@ fresh process per checkout (``PYTHONPATH=<tree>``, one torch thread), old then n
 the three-tube robot, 32 configurations (the last tube's rotation over [0, 250] deg), B = 1
 warm from the equilibrium 1 deg away, warm from the equilibrium 0.1 mm away in the last
 tube's insertion (every call at new insertions) and cold, the control step
-(``solve(...).jacobians(compliance=False)``, 8 configurations), the kernel's tip partials
+(``solve(...).jacobians(compliance=False)``, 8 configurations), ``Tracker`` steps of 1 deg
+(B = 1: the step, the control step ``jacobians=True`` and ``stiffness=True``, what the
+environments take each substep), the kernel's tip partials
 alone (``Kernel.tip_partials`` on a solve's layout, B = 1, where both trees have them) and
 B = 1024 warm; each figure the best of 5 passes, in ms per solve (per call). ``--loaded``
 adds the same cases for ``fig3_loaded``, the Fig. 3 robot under a dead tip force of 0.3 N
@@ -107,6 +109,31 @@ def probe(with_envs: bool = False, solves: bool = True, loaded: bool = False) ->
         cases = [("B1 warm", warm, n), ("B1 warm insertion step", warm_insertion, n),
                  ("B1 cold", cold, n), ("control step", control, 8),
                  ("B1024 warm", warm_b, 1024)]
+        if name != "fig3_loaded" and hasattr(torchpvs, "Tracker"):
+            # the control loop: Tracker steps of 1 deg in the last tube's rotation, B = 1,
+            # walking 0 -> 150 deg (on one branch: the Fig. 3 robot is bistable above ~180)
+            # and starting over
+            tr = torchpvs.Tracker(sc, insertion=ins[:1], rotation=rot[:1])
+            last = torch.zeros(1, N, dtype=torch.float64)
+            last[0, -1] = 1.0
+            path = [(rot[:1] + math.radians(k) * last).numpy() for k in range(151)]
+            D1 = ins[:1].numpy()
+            where = [0]
+
+            def tracker_steps(**kw):
+                def run():
+                    for _ in range(n):
+                        k = where[0] % 150
+                        if k == 0:
+                            tr.restore(start)
+                        tr.step(D1, path[k + 1], **kw)
+                        where[0] += 1
+                return run
+
+            start = tr.snapshot()
+            cases += [("Tracker.step", tracker_steps(), n),
+                      ("Tracker control step", tracker_steps(jacobians=True), n),
+                      ("Tracker step + stiffness", tracker_steps(stiffness=True), n)]
         from torchpvs.kernel import KERNELS
         eq = prev[0]
         ctx, info = eq.context, eq.context.implicit
