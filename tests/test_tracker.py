@@ -455,6 +455,29 @@ def test_solve_from_in_threads_equals_one_call():
         tr.solve_from(eq.q, D1, A1, threads=0)
 
 
+
+def _tracked_layouts(robot: str, seed: int, retract: float, trials: int = 6):
+    """``(tracker, state, layout arrays, tube arrays, D)`` at ``trials`` random rotations with
+    every tube retracted together by up to ``retract`` [m]: a converged tracker step, and the
+    compiled layout there (``compiled_layout.layout_maps_arrays``), for the tests of the
+    control step's pieces."""
+    from torchpvs.compiled_layout import layout_maps_arrays
+    from torchpvs.testing import nested_scene
+    scene = tp.load_scene("renda2021_fig3") if robot == "fig3" else nested_scene(3, seed=2)
+    rng = np.random.default_rng(seed)
+    tr = tp.Tracker(scene)
+    xg, wg, xq, wq, xm, _ = tr._layout_tables
+    tubes, unloaded = tr._tube_args_for(1)
+    for _ in range(trials):
+        D = tr._D + rng.uniform(0.0, retract, (1, 1))
+        A = rng.uniform(-2.0, 2.0, (1, tr.N))
+        s = tr.step(D, A)
+        assert s.converged[0]
+        lay = layout_maps_arrays(*tubes, D, A, unloaded, 1e-12, xg, wg, xq, wq, xm, tr._phi,
+                                 tr._n)
+        yield tr, s, lay, tuple(a[0] for a in tubes), D[0]
+
+
 @pytest.mark.parametrize("robot", ["fig3", "three_tube"])
 def test_forward_mode_tip_tangents_equal_the_complex_step(robot):
     """The control step's ``J = P_x - P_q Z`` by forward-mode tangents
@@ -464,30 +487,18 @@ def test_forward_mode_tip_tangents_equal_the_complex_step(robot):
     random rotations and insertions (straight sections in the guide, transitions, tube ends),
     to round-off."""
     from torchpvs import tracker as T
-    from torchpvs.compiled_layout import layout_maps_arrays
-    from torchpvs.testing import nested_scene
-    scene = tp.load_scene("renda2021_fig3") if robot == "fig3" else nested_scene(3, seed=2)
     rng = np.random.default_rng(11)
-    tr = tp.Tracker(scene)
-    N = tr.N
-    xg, wg, xq, wq, xm, _ = tr._layout_tables
-    tubes, unloaded = tr._tube_args_for(1)
     worst = 0.0
-    for _ in range(6):
-        D = tr._D + rng.uniform(0.0, 0.02, (1, 1))       # all tubes retracted together
-        A = rng.uniform(-2.0, 2.0, (1, N))
-        s = tr.step(D, A)
-        assert s.converged[0]
-        lay = layout_maps_arrays(*tubes, D, A, unloaded, 1e-12, xg, wg, xq, wq, xm, tr._phi,
-                                 tr._n)
+    for tr, s, lay, (_EI, _GJ, L, Ls, coef), D in _tracked_layouts(robot, 11, 0.02):
+        N = tr.N
+        xm = tr._layout_tables[4]
         tau, psi0, start, h, present, curved, presc, qmask, tip_tube = (
             lay[1][0], lay[9][0], lay[2][0], lay[3][0], lay[4][0], lay[5][0], lay[7][0],
             lay[8][0], lay[12][0])
-        EI, GJ, L, Ls, coef = (a[0] for a in tubes)
         dq = rng.normal(size=(s.q.shape[1], 2 * N)) * qmask[:, None]
         for Ds, As in ((np.zeros(N), np.zeros(N)),
                        (rng.normal(size=N) * 1e-4, rng.normal(size=N) * 1e-2)):
-            args = (s.q[0], dq, qmask, D[0], L, Ls, coef, tau, psi0, start, h, present, curved,
+            args = (s.q[0], dq, qmask, D, L, Ls, coef, tau, psi0, start, h, present, curved,
                     presc, tip_tube, xm, tr._phi_m, tr._Q_m, Ds, As)
             ref, fwd = np.empty((6, 2 * N)), np.empty((6, 2 * N))
             compiled.tip_directional(*args, ref)
@@ -505,24 +516,11 @@ def test_forward_mode_stiffness_rows_equal_the_complex_step(robot):
     the insertions alone (the rotation rows read off the Hessian) and along all actuators, on
     random rotations and insertions, to round-off."""
     from torchpvs import tracker as T
-    from torchpvs.compiled_layout import layout_maps_arrays
-    from torchpvs.testing import nested_scene
-    scene = tp.load_scene("renda2021_fig3") if robot == "fig3" else nested_scene(3, seed=2)
-    rng = np.random.default_rng(12)
-    tr = tp.Tracker(scene)
-    N = tr.N
-    xg, wg, xq, wq, xm, _ = tr._layout_tables
-    tubes, unloaded = tr._tube_args_for(1)
-    EI, GJ, L, Ls, coef = (a[0] for a in tubes)
     worst, nonzero = 0.0, 0
-    for _ in range(6):
-        D = tr._D + rng.uniform(0.0, 0.005, (1, 1))
-        A = rng.uniform(-2.0, 2.0, (1, N))
-        s = tr.step(D, A)
-        assert s.converged[0]
-        lay = layout_maps_arrays(*tubes, D, A, unloaded, 1e-12, xg, wg, xq, wq, xm, tr._phi,
-                                 tr._n)
-        args = (s.q[0], lay[8][0], D[0], L, Ls, EI, GJ, coef, lay[1][0], lay[9][0], lay[2][0],
+    for tr, s, lay, (EI, GJ, L, Ls, coef), D in _tracked_layouts(robot, 12, 0.005):
+        N = tr.N
+        xq, wq = tr._layout_tables[2], tr._layout_tables[3]
+        args = (s.q[0], lay[8][0], D, L, Ls, EI, GJ, coef, lay[1][0], lay[9][0], lay[2][0],
                 lay[3][0], lay[4][0], lay[5][0], lay[6][0], lay[7][0], lay[11][0], xq, wq,
                 tr._phi, tr._Qb)
         for m in (N, 2 * N):
