@@ -487,8 +487,14 @@ def main(argv: list[str] | None = None) -> int:
         name, _, path = spec.rpartition("=")
         jobs.append((name or Path(path).stem, path))
     jobs += [(b, None) for b in args.baselines]
-    if not jobs:
-        p.error("give at least one --policy or --baselines")
+    if not jobs and not args.run_dir:
+        p.error("give at least one --policy, --baselines or --run-dir")
+    if not jobs:                 # learning curves of the run folders alone
+        paths = _figures({}, out, [Path(d) for d in args.run_dir])
+        if not paths:
+            p.error("no --run-dir holds an evaluations.npz (the runs' evaluation callback)")
+        print("wrote " + ", ".join(str(q) for q in paths))
+        return 0
     for name, path in jobs:
         try:
             venv, env_id = policy_env(path, args.batch, robot=args.robot, env_id=args.env,

@@ -164,6 +164,14 @@ def test_train_200_steps_and_evaluate(tmp_path):
         e = np.array(episodes[name]["final_error"]) * 1e3
         assert len(e) == 2 and math.isclose(float(np.median(e)), m["median_error_mm"])
     assert (out / "error_histogram.png").exists() and (out / "learning_curve.png").exists()
+    # learning curves of run folders alone; a folder without evaluations is refused
+    curves = tmp_path / "curves"
+    assert evaluate.main(["--run-dir", str(run), "--out", str(curves)]) == 0
+    assert (curves / "learning_curve.png").exists() and not (curves / "metrics.json").exists()
+    with pytest.raises(SystemExit):
+        evaluate.main(["--run-dir", str(tmp_path), "--out", str(tmp_path / "none")])
+    with pytest.raises(SystemExit):
+        evaluate.main(["--out", str(tmp_path / "none")])
 
 
 def test_fine_tuning_starts_from_the_saved_networks(tmp_path):
