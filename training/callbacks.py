@@ -19,7 +19,7 @@ from collections import deque
 import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback
 
-__all__ = ["FailedGoalReplay", "ToleranceCurriculum", "WallClockLimit"]
+__all__ = ["DemoCloning", "FailedGoalReplay", "ToleranceCurriculum", "WallClockLimit"]
 
 
 class ToleranceCurriculum(BaseCallback):
@@ -149,3 +149,100 @@ class FailedGoalReplay(BaseCallback):
         self.logger.record("replay/pool", len(self.pool))
         self.logger.record("replay/share", self.replayed / max(1, self.finished))
         return True
+
+
+class DemoCloning(BaseCallback):
+    """Behaviour cloning from a controller's demonstrations, with a Q filter (Nair et al.,
+    "Overcoming exploration in reinforcement learning with demonstrations", ICRA 2018).
+
+    Between rollouts, for each gradient step the algorithm took since the last rollout, the
+    actor takes one step on ``L = mean_i 1[Q(s_i, a_i) > Q(s_i, pi(s_i))] ||pi(s_i) - a_i||^2``
+    over ``batch_size`` demonstration pairs ``(s_i, a_i)`` (its deterministic action ``pi``;
+    ``Q`` the mean of the critics' quantiles), with an Adam optimizer of its own at
+    ``learning_rate``: the policy copies the demonstrator only where its own critic rates the
+    demonstrated action above the policy's, so a demonstrator that is worse somewhere is not
+    copied there. The critic learns from the agent's own transitions only. The policy that
+    results is model-free when it acts; the demonstrator (a model-based controller) only
+    supplies training data.
+
+    ``path`` is a file of :mod:`training.demos` made with the training env's observation and
+    action (``--like`` a policy of that env). Needs an off-policy algorithm with ``actor`` and
+    ``critic`` (SAC, TQC) and dict observations. Logged: ``demo/loss``, ``demo/accepted`` (the
+    share of pairs the Q filter passes)."""
+
+    def __init__(self, path: str, learning_rate: float = 3e-5, batch_size: int = 256,
+                 q_filter: bool = True, seed: int | None = None, verbose: int = 0):
+        super().__init__(verbose)
+        if not (isinstance(learning_rate, (int, float)) and learning_rate > 0):
+            raise ValueError(f"DemoCloning learning_rate must be > 0, got {learning_rate!r}")
+        if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
+            raise ValueError(f"DemoCloning batch_size must be an integer >= 1, got "
+                             f"{batch_size!r}")
+        self.path, self.learning_rate, self.batch_size = str(path), float(learning_rate), batch_size
+        self.q_filter, self.seed = bool(q_filter), seed
+        self.rng = np.random.default_rng(seed)
+        self.steps = 0
+        self._seen_updates = 0
+
+    def _on_training_start(self) -> None:
+        import torch
+
+        model = self.model
+        for name in ("actor", "critic"):
+            if getattr(model, name, None) is None:
+                raise ValueError(f"DemoCloning needs an algorithm with an {name} (SAC, TQC), "
+                                 f"got {type(model).__name__}")
+        space = model.observation_space
+        with np.load(self.path) as f:
+            data = {k: f[k] for k in ("observation", "achieved_goal", "desired_goal",
+                                      "action")}
+        for key, arr in data.items():
+            want = model.action_space.shape if key == "action" else space[key].shape
+            if arr.shape[1:] != tuple(want):
+                raise ValueError(f"DemoCloning: {self.path} field {key!r} has shape "
+                                 f"{arr.shape[1:]} per step, the model's is {tuple(want)} "
+                                 f"(make the demonstrations with --like a policy of this env)")
+        self.n = len(data["action"])
+        dev = model.device
+        self.obs = {k: torch.as_tensor(data[k], dtype=torch.float32, device=dev)
+                    for k in ("observation", "achieved_goal", "desired_goal")}
+        # the algorithm's actions live in [-1, 1] (scale_action), the env's in its Box
+        self.actions = torch.as_tensor(model.policy.scale_action(data["action"]),
+                                       dtype=torch.float32, device=dev)
+        self.optimizer = torch.optim.Adam(model.actor.parameters(), lr=self.learning_rate)
+        if self.seed is None and model.seed is not None:
+            self.rng = np.random.default_rng(model.seed + 104729)
+        self._seen_updates = model._n_updates
+
+    def _on_step(self) -> bool:
+        return True
+
+    def _on_rollout_end(self) -> None:
+        import torch
+
+        model = self.model
+        todo = model._n_updates - self._seen_updates
+        self._seen_updates = model._n_updates
+        loss_sum = accepted = 0.0
+        for _ in range(todo):
+            idx = torch.as_tensor(self.rng.integers(self.n, size=self.batch_size))
+            obs = {k: v[idx] for k, v in self.obs.items()}
+            a_demo = self.actions[idx]
+            a_pi = model.actor(obs, deterministic=True)
+            if self.q_filter:
+                with torch.no_grad():
+                    q_demo = model.critic(obs, a_demo).mean(dim=(1, 2))
+                    q_pi = model.critic(obs, a_pi.detach()).mean(dim=(1, 2))
+                    keep = (q_demo > q_pi).float()
+            else:
+                keep = torch.ones(self.batch_size)
+            loss = (keep * ((a_pi - a_demo) ** 2).sum(-1)).mean()
+            self.optimizer.zero_grad()
+            loss.backward()
+            self.optimizer.step()
+            loss_sum += float(loss.detach())
+            accepted += float(keep.mean())
+        if todo:
+            self.steps += todo
+            self.logger.record("demo/loss", loss_sum / todo)
+            self.logger.record("demo/accepted", accepted / todo)
