@@ -151,6 +151,16 @@ class FailedGoalReplay(BaseCallback):
         return True
 
 
+def _q_mean(critic, obs, action):
+    """``(B,)`` the mean of a critic's estimates: TQC's ``(B, n_critics, n_quantiles)``
+    quantiles or SAC's tuple of ``(B, 1)`` values."""
+    import torch
+    q = critic(obs, action)
+    if isinstance(q, (tuple, list)):
+        q = torch.cat(q, dim=1)
+    return q.flatten(1).mean(1)
+
+
 class DemoCloning(BaseCallback):
     """Behaviour cloning from a controller's demonstrations, with a Q filter (Nair et al.,
     "Overcoming exploration in reinforcement learning with demonstrations", ICRA 2018).
@@ -158,7 +168,7 @@ class DemoCloning(BaseCallback):
     Between rollouts, for each gradient step the algorithm took since the last rollout, the
     actor takes one step on ``L = mean_i 1[Q(s_i, a_i) > Q(s_i, pi(s_i))] ||pi(s_i) - a_i||^2``
     over ``batch_size`` demonstration pairs ``(s_i, a_i)`` (its deterministic action ``pi``;
-    ``Q`` the mean of the critics' quantiles), with an Adam optimizer of its own at
+    ``Q`` the mean of the critics' estimates), with an Adam optimizer of its own at
     ``learning_rate``: the policy copies the demonstrator only where its own critic rates the
     demonstrated action above the policy's, so a demonstrator that is worse somewhere is not
     copied there. The critic learns from the agent's own transitions only. The policy that
@@ -231,9 +241,8 @@ class DemoCloning(BaseCallback):
             a_pi = model.actor(obs, deterministic=True)
             if self.q_filter:
                 with torch.no_grad():
-                    q_demo = model.critic(obs, a_demo).mean(dim=(1, 2))
-                    q_pi = model.critic(obs, a_pi.detach()).mean(dim=(1, 2))
-                    keep = (q_demo > q_pi).float()
+                    keep = (_q_mean(model.critic, obs, a_demo)
+                            > _q_mean(model.critic, obs, a_pi.detach())).float()
             else:
                 keep = torch.ones(self.batch_size)
             loss = (keep * ((a_pi - a_demo) ** 2).sum(-1)).mean()

@@ -120,3 +120,26 @@ def test_demonstrations_of_another_env_are_refused_by_field(tmp_path):
         cb.on_training_start({}, {})
     with pytest.raises(ValueError, match="learning_rate"):
         DemoCloning(str(path), learning_rate=0)
+
+
+def test_cloning_runs_from_a_hyperparameter_entry(tmp_path):
+    """The callback as users name it (``callback:`` list of an entry, dotted path), on SAC
+    (its critics answer a tuple of values): the run logs its cloning steps."""
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    hp = train.load_hyperparams("sac", ZOO_ENV)
+    hp = {**hp, "n_envs": 2, "env_kwargs": {**hp.get("env_kwargs", {}), "max_episode_steps": 20},
+          "learning_starts": 50, "buffer_size": 1000, "batch_size": 32}
+    venv = train.make_venv(ZOO_ENV, hp)
+    obs = venv.reset()
+    path = tmp_path / "demos.npz"
+    np.savez(path, **{k: np.repeat(obs[k], 8, axis=0) for k in demos.KEYS},
+             action=np.zeros((16, venv.action_space.shape[0]), dtype=np.float32))
+    hp["callback"] = [{"training.callbacks.DemoCloning": {"path": str(path),
+                                                          "batch_size": 8}}]
+    run = train.train("sac", ZOO_ENV, hp, steps=120, seed=3, out=tmp_path / "run",
+                      progress=False, eval_freq=0, eval_episodes=0)
+    events = EventAccumulator(str(next((run / "tb").rglob("events.out.tfevents.*")).parent))
+    events.Reload()
+    accepted = [e.value for e in events.Scalars("demo/accepted")]
+    assert accepted and all(0.0 <= a <= 1.0 for a in accepted)
