@@ -175,14 +175,22 @@ class DemoCloning(BaseCallback):
     results is model-free when it acts; the demonstrator (a model-based controller) only
     supplies training data.
 
+    ``min_distance`` [m]: only the pairs whose tip is farther than this from their goal are
+    cloned (the demonstrator's travel, not its hold at the goal).
+
     ``path`` is a file of :mod:`training.demos` made with the training env's observation and
     action (``--like`` a policy of that env). Needs an off-policy algorithm with ``actor`` and
     ``critic`` (SAC, TQC) and dict observations. Logged: ``demo/loss``, ``demo/accepted`` (the
     share of pairs the Q filter passes)."""
 
     def __init__(self, path: str, learning_rate: float = 3e-5, batch_size: int = 256,
-                 q_filter: bool = True, seed: int | None = None, verbose: int = 0):
+                 q_filter: bool = True, min_distance: float = 0.0, seed: int | None = None,
+                 verbose: int = 0):
         super().__init__(verbose)
+        if not (isinstance(min_distance, (int, float)) and min_distance >= 0):
+            raise ValueError(f"DemoCloning min_distance must be a distance >= 0 [m], got "
+                             f"{min_distance!r}")
+        self.min_distance = float(min_distance)
         if not (isinstance(learning_rate, (int, float)) and learning_rate > 0):
             raise ValueError(f"DemoCloning learning_rate must be > 0, got {learning_rate!r}")
         if isinstance(batch_size, bool) or not isinstance(batch_size, int) or batch_size < 1:
@@ -212,6 +220,14 @@ class DemoCloning(BaseCallback):
                 raise ValueError(f"DemoCloning: {self.path} field {key!r} has shape "
                                  f"{arr.shape[1:]} per step, the model's is {tuple(want)} "
                                  f"(make the demonstrations with --like a policy of this env)")
+        # pairs whose tip is farther than min_distance from their goal (the travel, not the
+        # hold at the goal)
+        far = np.linalg.norm(data["achieved_goal"][:, :3] - data["desired_goal"][:, :3],
+                             axis=-1) > self.min_distance
+        if not far.any():
+            raise ValueError(f"DemoCloning: no pair of {self.path} lies farther than "
+                             f"min_distance = {self.min_distance} m from its goal")
+        data = {k: v[far] for k, v in data.items()}
         self.n = len(data["action"])
         dev = model.device
         self.obs = {k: torch.as_tensor(data[k], dtype=torch.float32, device=dev)

@@ -143,3 +143,19 @@ def test_cloning_runs_from_a_hyperparameter_entry(tmp_path):
     events.Reload()
     accepted = [e.value for e in events.Scalars("demo/accepted")]
     assert accepted and all(0.0 <= a <= 1.0 for a in accepted)
+
+
+def test_min_distance_keeps_only_the_pairs_far_from_their_goal(tmp_path):
+    model, path, data = _model_and_demos(tmp_path)
+    d = np.linalg.norm(data["achieved_goal"][:, :3] - data["desired_goal"][:, :3], axis=-1)
+    cut = float(np.median(d))
+    cb = DemoCloning(str(path), min_distance=cut)
+    cb.init_callback(model)
+    cb.on_training_start({}, {})
+    assert cb.n == int((d > cut).sum()) and 0 < cb.n < len(d)
+    kept = cb.obs["desired_goal"][:, :3].numpy() - cb.obs["achieved_goal"][:, :3].numpy()
+    assert (np.linalg.norm(kept, axis=-1) > cut).all()
+    cb = DemoCloning(str(path), min_distance=float(d.max()) + 1.0)
+    cb.init_callback(model)
+    with pytest.raises(ValueError, match="min_distance"):
+        cb.on_training_start({}, {})
