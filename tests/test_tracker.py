@@ -533,3 +533,20 @@ def test_forward_mode_stiffness_rows_equal_the_complex_step(robot):
             err = max(np.abs(Gf - Gr).max(), np.abs(Xf - Xr).max())
             worst = max(worst, err / max(size, 1e-300))
     assert nonzero >= 8 and worst < 1e-13
+
+
+def test_the_anatomy_benchmark_times_the_calls_a_step_makes(capsys):
+    """benchmarks/tracker_anatomy.py captures the step's compiled call by its name (a rename
+    would otherwise break it unnoticed) and prints every row with ordered, positive times."""
+    import importlib.util
+    from pathlib import Path
+
+    path = Path(__file__).resolve().parents[1] / "benchmarks" / "tracker_anatomy.py"
+    spec = importlib.util.spec_from_file_location("tracker_anatomy", path)
+    mod = importlib.util.module_from_spec(spec)
+    spec.loader.exec_module(mod)
+    assert mod.main(["--calls", "20"]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    assert "kink side 1" in lines[0]          # the Fig. 3 insertions sit at a kink
+    rows = {ln[:52].strip(): [float(v) for v in ln[52:].split()] for ln in lines[2:]}
+    assert len(rows) == 7 and all(0 < lo <= p10 for lo, p10 in rows.values())
