@@ -459,7 +459,7 @@ def tip_forward(q, dq, qmask, D, L, Ls, coef, tau, psi0, start, h, present, curv
         Px[5, d] = 0.5 * (W[1, 0] - W[0, 1])
 
 
-@cached_jit(nogil=True)
+@cached_jit(nogil=True, inline="always")
 def _horner_second(coef, j, c, t):
     """d^2/dt^2 of :func:`torchpvs.compiled.horner`."""
     P = coef.shape[2]
@@ -648,9 +648,8 @@ def stiffness_forward(q, qmask, D, L, Ls, EI, GJ, coef, tau, psi0, start, h, pre
                 Gp[j] += gpsi
                 s_loc += gpsi * 0.5 * locq[j]
                 t = s_node + ntau[j]
-                dx = horner_derivative(coef, j, _X, t) * curved[k, j]
-                dy = horner_derivative(coef, j, _Y, t) * curved[k, j]
-                dz = horner_derivative(coef, j, _Z, t) * curved[k, j]
+                # (the first derivatives at this node: the same products as dus above)
+                dx, dy, dz = dus[j, 0], dus[j, 1], dus[j, 2]
                 ddx = _horner_second(coef, j, _X, t) * curved[k, j]
                 ddy = _horner_second(coef, j, _Y, t) * curved[k, j]
                 ddz = _horner_second(coef, j, _Z, t) * curved[k, j]
