@@ -187,7 +187,8 @@ class DemoCloning(BaseCallback):
                  q_filter: bool = True, min_distance: float = 0.0, seed: int | None = None,
                  verbose: int = 0):
         super().__init__(verbose)
-        if not (isinstance(min_distance, (int, float)) and min_distance >= 0):
+        if isinstance(min_distance, bool) or not (isinstance(min_distance, (int, float))
+                                                  and min_distance >= 0):
             raise ValueError(f"DemoCloning min_distance must be a distance >= 0 [m], got "
                              f"{min_distance!r}")
         self.min_distance = float(min_distance)
@@ -260,7 +261,7 @@ class DemoCloning(BaseCallback):
                     keep = (_q_mean(model.critic, obs, a_demo)
                             > _q_mean(model.critic, obs, a_pi.detach())).float()
             else:
-                keep = torch.ones(self.batch_size)
+                keep = torch.ones(self.batch_size, device=a_pi.device)
             loss = (keep * ((a_pi - a_demo) ** 2).sum(-1)).mean()
             self.optimizer.zero_grad()
             loss.backward()

@@ -159,3 +159,9 @@ def test_min_distance_keeps_only_the_pairs_far_from_their_goal(tmp_path):
     cb.init_callback(model)
     with pytest.raises(ValueError, match="min_distance"):
         cb.on_training_start({}, {})
+
+
+@pytest.mark.parametrize("bad", [-0.001, True, "1mm"])
+def test_min_distance_must_be_a_distance(tmp_path, bad):
+    with pytest.raises(ValueError, match="min_distance"):
+        DemoCloning(str(tmp_path / "demos.npz"), min_distance=bad)
