@@ -1181,7 +1181,7 @@ def _step_parallel(q, qm, psi0, bvec, h, us, EIw, EIws, GJw, Hsec, guide, gconst
                         Qb, LD, consts[3])
 
 
-@_inline
+@_jit
 def horner(coef, j, c, t):
     """``mechanics.poly`` of tube j's component c at t (coef (N, 3, P))."""
     P = coef.shape[2]
@@ -1191,7 +1191,7 @@ def horner(coef, j, c, t):
     return out
 
 
-@_inline
+@_jit
 def horner_derivative(coef, j, c, t):
     """d/dt of :func:`horner`."""
     P = coef.shape[2]
@@ -1203,7 +1203,7 @@ def horner_derivative(coef, j, c, t):
     return out
 
 
-@_inline
+@_jit
 def horner_integral(coef, j, t):
     """``int_0^t`` of tube j's z-polynomial (mechanics._poly_int)."""
     P = coef.shape[2]

@@ -459,7 +459,7 @@ def tip_forward(q, dq, qmask, D, L, Ls, coef, tau, psi0, start, h, present, curv
         Px[5, d] = 0.5 * (W[1, 0] - W[0, 1])
 
 
-@cached_jit(nogil=True, inline="always")
+@cached_jit(nogil=True)
 def _horner_second(coef, j, c, t):
     """d^2/dt^2 of :func:`torchpvs.compiled.horner`."""
     P = coef.shape[2]
