@@ -19,7 +19,8 @@ from collections import deque
 import numpy as np
 from stable_baselines3.common.callbacks import BaseCallback
 
-__all__ = ["DemoCloning", "FailedGoalReplay", "ToleranceCurriculum", "WallClockLimit"]
+__all__ = ["DemoCloning", "FailedGoalReplay", "ToleranceCurriculum", "WallClockLimit",
+           "critic_mean"]
 
 
 class ToleranceCurriculum(BaseCallback):
@@ -151,7 +152,7 @@ class FailedGoalReplay(BaseCallback):
         return True
 
 
-def _q_mean(critic, obs, action):
+def critic_mean(critic, obs, action):
     """``(B,)`` the mean of a critic's estimates: TQC's ``(B, n_critics, n_quantiles)``
     quantiles or SAC's tuple of ``(B, 1)`` values."""
     import torch
@@ -258,8 +259,8 @@ class DemoCloning(BaseCallback):
             a_pi = model.actor(obs, deterministic=True)
             if self.q_filter:
                 with torch.no_grad():
-                    keep = (_q_mean(model.critic, obs, a_demo)
-                            > _q_mean(model.critic, obs, a_pi.detach())).float()
+                    keep = (critic_mean(model.critic, obs, a_demo)
+                            > critic_mean(model.critic, obs, a_pi.detach())).float()
             else:
                 keep = torch.ones(self.batch_size, device=a_pi.device)
             loss = (keep * ((a_pi - a_demo) ** 2).sum(-1)).mean()

@@ -1,0 +1,117 @@
+"""Action ensembles of trained agents: K actors act together, no model of the robot.
+
+    python -m training.ensemble --mode qsel --models training/policies/tqc_force.zip \
+        runs/soup19/B.zip runs/soup21/B.zip --seed 20000 --episodes 1500 --out runs/ens
+
+Each member's actor proposes its deterministic action; ``mean`` takes their average,
+``qsel`` the proposal that the members' critics together rate highest (for each proposal the
+sum over members of the mean of the critic's estimates: TQC's quantiles, SAC's twin values),
+the critic-selection of ensemble RL. Members must be off-policy agents with a critic (TQC,
+SAC) trained on the same observation and action spaces, without a residual base or
+observation normalization (each would need its own). Scored with
+:func:`training.evaluate.rollout` on the same seeded goals as every other policy; writes
+``metrics.json`` as ``training.evaluate`` does. docs/results.md (stage 22) has what it
+measured on the force task.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import sys
+import time
+from pathlib import Path
+
+__all__ = ["MODES", "ensemble_policy", "main"]
+
+MODES = ("mean", "qsel")
+
+
+def ensemble_policy(paths: list[str], venv, mode: str = "qsel"):
+    """A batched deterministic policy ``obs -> action (B, A)`` of the agents at ``paths``
+    (``training.train`` models with their sibling ``.json``) acting on ``venv`` (an
+    :class:`envs.CTRReachVecEnv`) together by ``mode`` (:data:`MODES`). Raises ``ValueError``
+    naming the member and the rule it breaks."""
+    import torch
+
+    from .callbacks import critic_mean
+    from .evaluate import policy_meta
+    from .train import algo_class
+
+    if mode not in MODES:
+        raise ValueError(f"mode must be one of {MODES}, got {mode!r}")
+    if len(paths) < 1:
+        raise ValueError("paths: give at least one member")
+    models = []
+    for p in paths:
+        path, meta = policy_meta(p)
+        if meta["algo"] not in ("tqc", "sac"):
+            raise ValueError(f"{p}: ensemble members must be TQC or SAC agents (a critic per "
+                             f"member), got algo {meta['algo']!r}")
+        if meta["residual"] is not None or meta["vecnormalize"] is not None:
+            raise ValueError(f"{p}: ensemble members must act on the env's own observations "
+                             f"(no residual base, no observation normalization)")
+        try:
+            m = algo_class(meta["algo"]).load(path, env=venv, device="cpu")  # HER: the env
+        except ValueError as e:       # SB3's space check
+            raise ValueError(f"{p}: its observation or action space is not the env's "
+                             f"(trained with other env kwargs than the first member): {e}"
+                             ) from e
+        m.policy.set_training_mode(False)
+        models.append(m)
+    low, high = venv.action_space.low, venv.action_space.high
+
+    def policy(obs):
+        with torch.no_grad():
+            o, _ = models[0].policy.obs_to_tensor(obs)
+            # each actor's squashed action in [-1, 1], where the critics were trained
+            acts = torch.stack([m.policy.actor(o, deterministic=True) for m in models])
+            if mode == "mean":
+                a = acts.mean(0)
+            else:
+                score = torch.stack([sum(critic_mean(m.policy.critic, o, a_k) for m in models)
+                                     for a_k in acts])            # (K, B)
+                a = acts[score.argmax(0), torch.arange(acts.shape[1])]
+        return low + 0.5 * (a.numpy() + 1.0) * (high - low)
+
+    return policy
+
+
+def main(argv: list[str] | None = None) -> int:
+    import torch
+
+    from .evaluate import policy_env, rollout, summarize
+
+    p = argparse.ArgumentParser(prog="python -m training.ensemble", description=__doc__,
+                                formatter_class=argparse.RawDescriptionHelpFormatter)
+    p.add_argument("--models", nargs="+", required=True, help="member models (.zip)")
+    p.add_argument("--mode", choices=MODES, default="qsel")
+    p.add_argument("--episodes", type=int, default=500)
+    p.add_argument("--batch", type=int, default=50)
+    p.add_argument("--seed", type=int, default=12345)
+    p.add_argument("--threads", type=int, default=1)
+    p.add_argument("--name", default=None, help="the key in metrics.json (default: the mode)")
+    p.add_argument("--out", default="runs/ensemble")
+    args = p.parse_args(argv)
+    torch.set_num_threads(args.threads)
+    try:
+        venv, env_id = policy_env(args.models[0], args.batch)
+        policy = ensemble_policy(args.models, venv, args.mode)
+    except ValueError as e:
+        p.error(str(e))
+    t0 = time.perf_counter()
+    s = summarize(rollout(policy, venv, args.episodes, seed=args.seed))
+    s.update(env=env_id, mode=args.mode, members=args.models,
+             wall_s=round(time.perf_counter() - t0, 1))
+    out = Path(args.out)
+    out.mkdir(parents=True, exist_ok=True)
+    name = args.name or args.mode
+    (out / "metrics.json").write_text(json.dumps({name: s}, indent=2))
+    print(f"{name}: " + ", ".join(f"{k}={v:.3g}" if isinstance(v, float) else f"{k}={v}"
+                                  for k, v in s.items() if k != "members"))
+    print(f"wrote {out / 'metrics.json'}")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())
