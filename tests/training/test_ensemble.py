@@ -1,7 +1,9 @@
 """Action ensembles (training/ensemble.py): ``mean`` is the average of the members' own
 deterministic actions (each taken from SB3's ``predict``, not from the ensemble's code),
 ``qsel`` returns, per robot, the member action that the members' critics (called directly)
-rate highest in sum, one member alone is that member, and bad members are refused by name."""
+rate highest in sum, ``switch`` the far member's action exactly for the robots whose tip is
+farther from the goal than the distance (from the env's own state), one member alone is that
+member, and bad members and settings are refused by name."""
 
 from __future__ import annotations
 
@@ -80,6 +82,20 @@ def test_qsel_takes_the_action_the_critics_rate_highest(members):
     assert len(set(score.argmax(0).tolist())) > 1 or not np.allclose(cands[0], cands[1])
 
 
+def test_switch_takes_the_far_members_action_beyond_the_distance(members):
+    paths, _ = members
+    venv, obs = _obs(16, seed=7)
+    near, far = (_predict(p, venv, obs) for p in paths[:2])
+    st = venv.state()
+    d = np.linalg.norm(st.tip - st.goal, axis=-1)          # the env's own tip and goal [m]
+    cut = float(np.median(d))                               # about half the robots each side
+    got = ensemble_policy([str(p) for p in paths[:2]], venv, "switch", cut)(obs)
+    beyond = d > cut
+    assert 0 < beyond.sum() < len(d)
+    np.testing.assert_allclose(got[beyond], far[beyond], atol=1e-6)
+    np.testing.assert_allclose(got[~beyond], near[~beyond], atol=1e-6)
+
+
 def test_bad_members_and_modes_are_refused_by_name(members, tmp_path):
     paths, ppo = members
     venv, _ = _obs(2)
@@ -89,6 +105,14 @@ def test_bad_members_and_modes_are_refused_by_name(members, tmp_path):
         ensemble_policy([str(paths[0]), str(ppo)], venv)
     with pytest.raises(ValueError, match="at least one"):
         ensemble_policy([], venv)
+    two = [str(p) for p in paths[:2]]
+    with pytest.raises(ValueError, match="exactly two"):
+        ensemble_policy([str(p) for p in paths], venv, "switch", 0.01)
+    for bad in (None, 0.0, -1.0, float("nan"), True):
+        with pytest.raises(ValueError, match="switch_distance"):
+            ensemble_policy(two, venv, "switch", bad)
+    with pytest.raises(ValueError, match="switch_distance applies"):
+        ensemble_policy(two, venv, "mean", 0.01)
     other = envs.CTRReachVecEnv(2, observe_stiffness=True)
     with pytest.raises(ValueError, match="sac0.zip.*observation or action space"):
         ensemble_policy([str(paths[0])], other)
