@@ -77,8 +77,6 @@ def ensemble_policy(paths: list[str], venv, mode: str = "qsel",
                              ) from e
         m.policy.set_training_mode(False)
         models.append(m)
-    low, high = venv.action_space.low, venv.action_space.high
-
     def policy(obs):
         with torch.no_grad():
             o, _ = models[0].policy.obs_to_tensor(obs)
@@ -96,7 +94,7 @@ def ensemble_policy(paths: list[str], venv, mode: str = "qsel",
                 score = torch.stack([sum(critic_mean(m.policy.critic, o, a_k) for m in models)
                                      for a_k in acts])            # (K, B)
                 a = acts[score.argmax(0), torch.arange(acts.shape[1])]
-        return low + 0.5 * (a.numpy() + 1.0) * (high - low)
+        return models[0].policy.unscale_action(a.numpy())   # as SB3's predict does
 
     return policy
 
